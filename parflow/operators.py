@@ -1,0 +1,123 @@
+"""Rigidity matrix S, affine rates b and N = S S^T as distributed PETSc objects (DESIGN §2-§3).
+
+* S (Nc x dN): row alpha = <ij> holds -n_alpha at particle i and +n_alpha at particle j.
+  (S V)_alpha is the rate of change of the length of alpha; (S^T tau)_k is the net
+  contact force on particle k.
+* N = S S^T (Nc x Nc): N_ab = c_ab (n_a . n_b) with c_ab = sum_k s_ak s_bk the signed
+  incidence overlap (c_aa = 2; +-1 for two bonds sharing one particle).
+
+Parallel model: "replicated geometry, distributed algebra".  Every rank holds all positions
+and unit vectors; rank p owns a contiguous block of rows (bonds) of S and N.  The sparsity
+pattern is built once per bond list (networks: for the whole run) and locked, so the factor's
+symbolic analysis is reused and only numeric values change from step to step.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+
+def row_ownership(n_rows: int, comm) -> tuple[int, int]:
+    """Contiguous block of rows owned by this rank (PETSc's default split)."""
+    size, rank = comm.getSize(), comm.getRank()
+    q, r = divmod(n_rows, size)
+    lo = rank * q + min(rank, r)
+    return lo, lo + q + (1 if rank < r else 0)
+
+
+def incidence(n_nodes: int, i: np.ndarray, j: np.ndarray) -> sp.csr_matrix:
+    """Signed incidence B (Nc x N): -1 at i, +1 at j."""
+    nb = i.shape[0]
+    rows = np.repeat(np.arange(nb), 2)
+    cols = np.column_stack([i, j]).ravel()
+    vals = np.tile([-1.0, 1.0], nb)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(nb, n_nodes))
+
+
+class RigidityOperators:
+    """S and N for a fixed list of pairs (i, j) on ``n_nodes`` nodes in ``d`` dimensions.
+
+    ``update(n)`` refreshes the numeric values from the unit vectors n_alpha (all pairs,
+    replicated); the PETSc Mats keep their identity and pattern.
+    """
+
+    def __init__(self, comm, n_nodes: int, d: int, i: np.ndarray, j: np.ndarray):
+        self.comm = comm
+        self.n_nodes, self.d = int(n_nodes), int(d)
+        self.nc = int(i.shape[0])
+        self.lo, self.hi = row_ownership(self.nc, comm)
+        lo, hi = self.lo, self.hi
+        nloc = hi - lo
+        it = PETSc.IntType
+        self.i_loc, self.j_loc = i[lo:hi], j[lo:hi]
+
+        # --- S pattern: each row has 2d entries, columns sorted --------------------------
+        comp = np.arange(d)
+        cols = np.concatenate([d * self.i_loc[:, None] + comp, d * self.j_loc[:, None] + comp], axis=1)
+        sign = np.concatenate([-np.ones((nloc, d)), np.ones((nloc, d))], axis=1)
+        self._s_order = np.argsort(cols, axis=1, kind="stable")
+        self._s_sign = np.take_along_axis(sign, self._s_order, axis=1)
+        s_cols = np.take_along_axis(cols, self._s_order, axis=1)
+        self._s_indptr = (2 * d * np.arange(nloc + 1)).astype(it)
+        self._s_indices = s_cols.ravel().astype(it)
+
+        # --- N pattern: pairs of bonds sharing a particle (rows of |B_loc| |B|^T) ----------
+        # c_ab = [j_a = j_b] + [i_a = i_b] - [j_a = i_b] - [i_a = j_b]  (signed overlap)
+        B = abs(incidence(self.n_nodes, i, j))
+        P = (B[lo:hi] @ B.T).tocsr()
+        P.sort_indices()
+        rows = np.repeat(np.arange(lo, hi), np.diff(P.indptr))
+        cols = P.indices.astype(np.int64)
+        self._n_coef = ((j[rows] == j[cols]).astype(float) + (i[rows] == i[cols])
+                        - (j[rows] == i[cols]) - (i[rows] == j[cols]))
+        self._n_indptr = P.indptr.astype(it)
+        self._n_indices = P.indices.astype(it)
+        self._n_rows, self._n_cols = rows, cols
+
+        # --- PETSc objects --------------------------------------------------------------
+        self.S = PETSc.Mat().createAIJ(size=((nloc, self.nc), (PETSc.DECIDE, d * self.n_nodes)),
+                                       csr=(self._s_indptr, self._s_indices,
+                                            np.zeros(self._s_indices.shape[0])), comm=comm)
+        self.N = PETSc.Mat().createAIJ(size=((nloc, self.nc), (nloc, self.nc)),
+                                       csr=(self._n_indptr, self._n_indices, self._n_coef.copy()),
+                                       comm=comm)
+        for M in (self.S, self.N):
+            M.setOption(PETSc.Mat.Option.NEW_NONZERO_LOCATION_ERR, True)
+        self.N.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        self.N.setOption(PETSc.Mat.Option.SYMMETRY_ETERNAL, True)
+        self.tau, self.rhs = self.N.createVecs()
+        self.force, _ = self.S.createVecs()        # dN-vector (columns of S)
+        self._scatter, self._force_all = PETSc.Scatter.toAll(self.force)
+
+    # ------------------------------------------------------------------------------------
+    def update(self, n: np.ndarray) -> None:
+        """Set the values of S and N from the unit vectors n (Nc x d, all pairs)."""
+        n_loc = n[self.lo:self.hi]
+        s_vals = np.concatenate([n_loc, n_loc], axis=1)
+        s_vals = np.take_along_axis(s_vals, self._s_order, axis=1) * self._s_sign
+        self.S.setValuesCSR(self._s_indptr, self._s_indices, s_vals.ravel())
+        self.S.assemble()
+        dots = np.einsum("ad,ad->a", n[self._n_rows], n[self._n_cols])
+        self.N.setValuesCSR(self._n_indptr, self._n_indices, self._n_coef * dots)
+        self.N.assemble()
+
+    def set_local(self, vec: PETSc.Vec, values: np.ndarray) -> PETSc.Vec:
+        """Fill a row-distributed Vec from a replicated array of length Nc."""
+        vec.setArray(values[self.lo:self.hi])
+        return vec
+
+    def gather(self, vec: PETSc.Vec) -> np.ndarray:
+        """All entries of a row-distributed Vec on every rank (Nc,)."""
+        return np.concatenate(self.comm.tompi4py().allgather(vec.getArray().copy()))
+
+    def ST(self, tau: PETSc.Vec) -> np.ndarray:
+        """V = S^T tau, replicated on every rank as an (N, d) array."""
+        self.S.multTranspose(tau, self.force)
+        self._scatter.scatter(self.force, self._force_all, addv=PETSc.InsertMode.INSERT,
+                              mode=PETSc.ScatterMode.FORWARD)
+        return self._force_all.getArray().reshape(self.n_nodes, self.d).copy()
+
+    def destroy(self):
+        for obj in (self.S, self.N, self.tau, self.rhs, self.force, self._scatter, self._force_all):
+            obj.destroy()

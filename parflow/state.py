@@ -1,0 +1,102 @@
+"""The simulation state: reduced positions, cell, bonds, strain.
+
+Conventions (docs/conventions.md, DESIGN §2):
+
+* ``h`` (d x d): columns are the periodic box vectors; r = h . s.
+* The cell is a pure function of the signed strain coordinate ``gamma``:
+  h(gamma) = expm(gamma E) . h0.  Reversing the flow means integrating the same
+  quasi-static ODE ds/dgamma = h^-1 V_na backwards in gamma.
+* Bonds are persistent: (i, j, image shift n, rest length l0) and
+  r_ij = h . (s_j + n - s_i).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class InputError(ValueError):
+    """A user error: reported as one line, without a traceback."""
+
+
+@dataclass
+class Bonds:
+    """Persistent rods.  ``i``, ``j``: node indices; ``shift``: (Nb, d) integer image
+    shifts; ``l0``: rest lengths."""
+
+    i: np.ndarray
+    j: np.ndarray
+    shift: np.ndarray
+    l0: np.ndarray
+
+    def __post_init__(self):
+        self.i = np.ascontiguousarray(self.i, dtype=np.int64)
+        self.j = np.ascontiguousarray(self.j, dtype=np.int64)
+        self.shift = np.ascontiguousarray(self.shift, dtype=np.int64)
+        self.l0 = np.ascontiguousarray(self.l0, dtype=np.float64)
+        nb = self.i.shape[0]
+        if self.j.shape != (nb,) or self.l0.shape != (nb,) or self.shift.ndim != 2 \
+                or self.shift.shape[0] != nb:
+            raise InputError("bonds: i, j, l0 must have length Nb and shift shape (Nb, d)")
+
+    def __len__(self) -> int:
+        return int(self.i.shape[0])
+
+    def validate(self, n_nodes: int) -> None:
+        if len(self) == 0:
+            raise InputError("the network has no bonds")
+        if self.i.min() < 0 or self.j.min() < 0 or max(self.i.max(), self.j.max()) >= n_nodes:
+            raise InputError(f"bond node index out of range [0, {n_nodes})")
+        self_loop = (self.i == self.j) & ~np.any(self.shift, axis=1)
+        if np.any(self_loop):
+            raise InputError(f"{int(self_loop.sum())} bond(s) join a node to itself")
+        if np.any(self.i == self.j):
+            raise InputError("a bond joins a node to its own periodic image: its row of S "
+                             "would be zero (make the box larger)")
+        if not np.all(np.isfinite(self.l0)) or np.any(self.l0 <= 0):
+            raise InputError("bond rest lengths must be finite and positive")
+
+
+@dataclass
+class State:
+    """Everything that evolves in a run.
+
+    s:      (N, d) reduced coordinates (not wrapped for bonded models).
+    h0:     (d, d) cell at gamma = 0.
+    E:      (d, d) velocity gradient of the flow (per unit strain).
+    gamma:  signed strain coordinate; h = expm(gamma E) h0.
+    bonds:  persistent rods (bonded models).
+    radii:  particle radii (suspensions; None for bonded models).
+    """
+
+    s: np.ndarray
+    h0: np.ndarray
+    E: np.ndarray
+    gamma: float = 0.0
+    bonds: Bonds | None = None
+    radii: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def d(self) -> int:
+        return int(self.s.shape[1])
+
+    @property
+    def n(self) -> int:
+        return int(self.s.shape[0])
+
+    @property
+    def h(self) -> np.ndarray:
+        from .cell import cell_at
+        return cell_at(self.h0, self.E, self.gamma)
+
+    @property
+    def volume(self) -> float:
+        return float(abs(np.linalg.det(self.h0)))
+
+    def copy(self) -> "State":
+        return State(self.s.copy(), self.h0.copy(), self.E.copy(), float(self.gamma),
+                     None if self.bonds is None else Bonds(self.bonds.i.copy(), self.bonds.j.copy(),
+                                                           self.bonds.shift.copy(), self.bonds.l0.copy()),
+                     None if self.radii is None else self.radii.copy(), dict(self.meta))

@@ -1,0 +1,142 @@
+"""Force evaluation of a bonded system: geometry -> S, N -> solve N tau = -b -> V_na.
+
+This is the narrow boundary between replicated numpy geometry and distributed PETSc algebra.
+
+Equations (DESIGN §2), with E the velocity gradient and Omega = det h:
+    b_alpha  = n_alpha . E r_alpha                    (= (S V_f)_alpha)
+    N tau    = -b                                     (force balance + rigid rods, S V = 0)
+    V_na     = S^T tau,   V = V_f + V_na
+    sigma    = |V_na|^2 / Omega = -<tau|b> / Omega    (two estimates; they agree to ~cond(N) eps)
+    p        = sum_alpha tau_alpha l_alpha / (d Omega)
+tau > 0 is compression.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cell import pair_geometry
+from .operators import RigidityOperators
+from .solvers import CholeskySolver, SolveInfo
+from .state import State
+
+
+@dataclass
+class Force:
+    """Everything known at one configuration after the force solve (replicated arrays)."""
+
+    gamma: float
+    h: np.ndarray
+    r: np.ndarray        # (Nc, d) pair vectors
+    ell: np.ndarray      # (Nc,) lengths
+    n: np.ndarray        # (Nc, d) unit vectors
+    b: np.ndarray        # (Nc,) affine rates
+    tau: np.ndarray      # (Nc,) forces, > 0 compressive
+    V_na: np.ndarray     # (N, d) non-affine velocities
+    sigma: float         # |V_na|^2 / Omega
+    sigma_tb: float      # -<tau|b> / Omega
+    pressure: float
+    info: SolveInfo
+
+    @property
+    def sigma_mismatch(self) -> float:
+        return abs(self.sigma - self.sigma_tb) / max(abs(self.sigma), 1e-300)
+
+    @property
+    def ds(self) -> np.ndarray:
+        """ds/dgamma = h^-1 V_na (the cell carries the affine part)."""
+        return np.linalg.solve(self.h, self.V_na.T).T
+
+
+class BondedSystem:
+    """Operators and solvers for a state with persistent bonds (chain, network)."""
+
+    def __init__(self, comm, state: State, preset: str = "direct"):
+        if state.bonds is None:
+            raise ValueError("BondedSystem needs a state with bonds")
+        state.bonds.validate(state.n)
+        self.comm = comm
+        self.state = state
+        bd = state.bonds
+        self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
+        self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset)
+        # The projection reuses the force factor (same N, no second factorisation).
+        self.proj_solver = self.tau_solver
+        self._x, self._rhs = self.ops.N.createVecs()
+        self.n_factor = 0          # numeric (re)factorisations requested
+
+    @property
+    def omega(self) -> float:
+        return self.state.volume
+
+    def geometry(self, s: np.ndarray, gamma: float):
+        st, bd = self.state, self.state.bonds
+        h = _cell(st, gamma)
+        r, ell, n, b = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
+        return h, r, ell, n, b
+
+    def load(self, n: np.ndarray) -> None:
+        """Put the values of S and N for unit vectors n into the PETSc Mats."""
+        self.ops.update(n)
+        self.n_factor += 1
+
+    def evaluate(self, s: np.ndarray, gamma: float, what: str = "force") -> Force:
+        """Solve N tau = -b at configuration (s, gamma); leaves N loaded at (s, gamma)."""
+        h, r, ell, n, b = self.geometry(s, gamma)
+        self.load(n)
+        ops = self.ops
+        ops.set_local(self._rhs, -b)
+        info = self.tau_solver.solve(self._rhs, ops.tau, what)
+        tau = ops.gather(ops.tau)
+        V_na = ops.ST(ops.tau)
+        omega = self.omega
+        sigma = float(np.einsum("id,id->", V_na, V_na)) / omega
+        sigma_tb = -float(tau @ b) / omega
+        pressure = float(tau @ ell) / (self.state.d * omega)
+        return Force(gamma, h, r, ell, n, b, tau, V_na, sigma, sigma_tb, pressure, info)
+
+    def solve_N(self, rhs: np.ndarray, solver: CholeskySolver | None = None, what="") -> np.ndarray:
+        """x = N^-1 rhs with the currently loaded N (replicated in and out)."""
+        solver = solver or self.proj_solver
+        self.ops.set_local(self._rhs, rhs)
+        solver.solve(self._rhs, self._x, what)
+        return self.ops.gather(self._x)
+
+    def ST(self, x: np.ndarray) -> np.ndarray:
+        self.ops.set_local(self._x, x)
+        return self.ops.ST(self._x)
+
+    def project(self, s: np.ndarray, gamma: float, tol: float = 1e-13, max_iter: int = 30):
+        """Restore rod lengths: quasi-Newton with the loaded factor,
+        dr = -S^T N^-1 (l - l0), iterated until max|l - l0| <= tol (absolute, in a0).
+        Returns (s, iterations, final error).  Raises SolveError if it does not converge."""
+        st, bd = self.state, self.state.bonds
+        h = _cell(st, gamma)
+        hinv = np.linalg.inv(h)
+        err0 = None
+        for it in range(max_iter + 1):
+            r, ell, _, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
+            g = ell - bd.l0
+            err = float(np.max(np.abs(g)))
+            if err <= tol:
+                return s, it, err
+            if it == max_iter or (err0 is not None and not np.isfinite(err)):
+                break
+            err0 = err
+            x = self.solve_N(-g, what="projection")
+            s = s + self.ST(x) @ hinv.T
+        from .solvers import SingularOperator
+        raise SingularOperator(f"projection on the rod constraints did not converge "
+                               f"(max |l - l0| = {err:.3e} after {max_iter} iterations)")
+
+    def destroy(self):
+        self.tau_solver.destroy()
+        self._x.destroy()
+        self._rhs.destroy()
+        self.ops.destroy()
+
+
+def _cell(state: State, gamma: float) -> np.ndarray:
+    from .cell import cell_at
+    return cell_at(state.h0, state.E, gamma)
