@@ -1,0 +1,115 @@
+"""Adaptive strain stepping for bonded models (DESIGN §5).
+
+The quasi-static dynamics is ds/dgamma = h(gamma)^-1 V_na(s, gamma).  Reversing the flow
+(gammadot -> -gammadot) integrates the same ODE backwards in gamma.
+
+Step (Heun, second order, first-same-as-last):
+    k0 = F(s, gamma)                                 (known from the previous step)
+    s1 = s + dg k0                                   (Euler predictor)
+    k1 = F(s1, gamma + dg)
+    err = |V1 - V0| / max(|V0|, |V1|)                (relative change of V_na over the step)
+    accept if err <= tol:  s' = s + dg (k0 + k1) / 2, then project onto the rod constraints
+    with the factor of N(s1):  dr = -S^T N^-1 (l - l0), iterated (quasi-Newton)
+    next dg = dg * clip(0.9 tol / err, 0.2, 2), bounded by max_dgamma and by the largest
+    non-affine displacement per step max_i |V_na,i| dg <= max_displacement.
+A step whose factorisation or projection fails is rejected and retried 4x smaller; when dg
+falls below min_dgamma the system has jammed (:class:`Jammed`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .solvers import SingularOperator
+
+
+class Jammed(RuntimeError):
+    """N became singular (or the constraints cannot be satisfied) within min_dgamma."""
+
+
+@dataclass
+class StepControl:
+    tol: float = 0.05
+    max_displacement: float = 0.05
+    max_dgamma: float = 1e-2
+    min_dgamma: float = 1e-14
+    initial_dgamma: float = 1e-4
+    length_tol: float = 1e-12
+
+    def validate(self):
+        from .state import InputError
+        for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",
+                     "length_tol"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"integrator.{name} must be a positive number, got {v!r}")
+        if self.min_dgamma >= self.max_dgamma:
+            raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
+
+
+@dataclass
+class StepResult:
+    s: np.ndarray
+    gamma: float
+    F: object            # Force at the new configuration
+    dgamma: float        # signed strain increment taken
+    next_dgamma: float   # magnitude proposed for the next step
+    err: float
+    rejected: int
+    proj_iter: int
+    length_error: float
+
+
+def _norm(V):
+    return float(np.sqrt(np.einsum("id,id->", V, V)))
+
+
+class Heun:
+    def __init__(self, system, control: StepControl):
+        self.system = system
+        self.c = control
+
+    def bound(self, F, dg: float) -> float:
+        vmax = float(np.sqrt(np.max(np.einsum("id,id->i", F.V_na, F.V_na)))) if F.V_na.size else 0.0
+        if vmax > 0:
+            dg = min(dg, self.c.max_displacement / vmax)
+        return min(dg, self.c.max_dgamma)
+
+    def step(self, s, gamma, F0, direction: int, dg: float, dg_cap: float | None = None) -> StepResult:
+        """One accepted step from (s, gamma) with force F0; ``dg`` is the proposed magnitude,
+        ``dg_cap`` an upper bound for this step (e.g. the end of a leg)."""
+        sysm, c = self.system, self.c
+        rejected = 0
+        k0 = F0.ds
+        nV0 = _norm(F0.V_na)
+        while True:
+            dg = self.bound(F0, dg)
+            if dg_cap is not None:
+                dg = min(dg, dg_cap)
+            if dg < c.min_dgamma:
+                raise Jammed(f"step size fell below min_dgamma = {c.min_dgamma:g} at gamma = "
+                             f"{gamma:.12g} after {rejected} rejected steps: the system has jammed")
+            h = direction * dg
+            try:
+                F1 = sysm.evaluate(s + h * k0, gamma + h, what="predictor")
+            except SingularOperator:
+                rejected += 1
+                dg *= 0.25
+                continue
+            scale = max(nV0, _norm(F1.V_na))
+            err = _norm(F1.V_na - F0.V_na) / scale if scale > 0 else 0.0
+            if not np.isfinite(err) or err > c.tol:
+                rejected += 1
+                dg *= max(0.2, 0.9 * c.tol / err) if np.isfinite(err) else 0.25
+                continue
+            s_new = s + 0.5 * h * (k0 + F1.ds)
+            try:
+                s_new, it, lerr = sysm.project(s_new, gamma + h, tol=c.length_tol)
+                F = sysm.evaluate(s_new, gamma + h, what="force")
+            except SingularOperator:
+                rejected += 1
+                dg *= 0.25
+                continue
+            grow = 2.0 if err == 0 else min(2.0, max(0.2, 0.9 * c.tol / err))
+            return StepResult(s_new, gamma + h, F, h, dg * grow, err, rejected, it, lerr)

@@ -1,0 +1,95 @@
+"""Low spectrum of N with SLEPc (DESIGN §4).
+
+The eigenvalues of N = S S^T are omega^2 (the non-zero spectrum of the stiffness S^T S of the
+equivalent spring network), so omega_min = sqrt(lambda_min(N)).
+
+Krylov-Schur, Hermitian, shift-and-invert at target 0 on a Cholesky factor (prefix ``spec_``;
+CHOLMOD on one rank, MUMPS on several).  ``-spec_bv_reproducible_random`` is set by default
+so that 1 and 2 ranks start from the same vector.  SLEPc is imported only when a scene asks for
+spectra.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .solvers import SolveError, default_factor_package
+
+
+class SpectrumError(SolveError):
+    pass
+
+
+class LowSpectrum:
+    """k lowest eigenpairs of a symmetric positive (semi-)definite PETSc Mat."""
+
+    def __init__(self, A, k: int = 1, prefix: str = "spec_", tol: float = 1e-10,
+                 max_it: int = 500):
+        from petsc4py import PETSc
+        from slepc4py import SLEPc
+        if k < 1:
+            raise ValueError(f"number of eigenpairs k must be >= 1, got {k}")
+        self.A, self.k, self.prefix = A, int(k), prefix
+        comm = A.getComm()
+        opts = PETSc.Options()
+        if not opts.hasName(prefix + "bv_reproducible_random"):
+            opts.setValue(prefix + "bv_reproducible_random", "true")
+        eps = SLEPc.EPS().create(comm)
+        eps.setOptionsPrefix(prefix)
+        eps.setOperators(A)
+        eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+        eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+        eps.setDimensions(self.k, PETSc.DECIDE, PETSc.DECIDE)
+        eps.setTarget(0.0)
+        eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+        eps.setTolerances(tol, max_it)
+        st = eps.getST()
+        st.setType(SLEPc.ST.Type.SINVERT)
+        ksp = st.getKSP()
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType(default_factor_package(comm))
+        eps.setFromOptions()
+        self.eps = eps
+
+    def solve(self, vectors: bool = False):
+        """Return (eigenvalues ascending, list of eigenvector Vecs or None)."""
+        from petsc4py import PETSc
+        try:
+            self.eps.solve()
+        except PETSc.Error as exc:
+            raise SpectrumError(f"{self.prefix}eigensolve failed (factorisation of N at target 0: "
+                                f"N is singular?): {exc}") from None
+        nconv = self.eps.getConverged()
+        if nconv < self.k:
+            raise SpectrumError(f"{self.prefix}eigensolve: only {nconv} of {self.k} eigenpairs "
+                                f"converged (reason {self.eps.getConvergedReason()}); "
+                                f"raise -{self.prefix}eps_max_it or -{self.prefix}eps_ncv")
+        vals, vecs = [], []
+        for m in range(nconv):
+            if vectors:
+                v, _ = self.A.createVecs()
+                vals.append(self.eps.getEigenpair(m, v).real)
+                vecs.append(v)
+            else:
+                vals.append(self.eps.getEigenvalue(m).real)
+        order = np.argsort(vals)[: self.k]
+        vals = np.asarray(vals)[order]
+        return vals, ([vecs[o] for o in order] if vectors else None)
+
+    def destroy(self):
+        self.eps.destroy()
+
+
+def omega_from_lambda(lam: np.ndarray) -> np.ndarray:
+    """omega = sqrt(lambda), with round-off negatives clipped to 0."""
+    return np.sqrt(np.clip(lam, 0.0, None))
+
+
+def omega_min(A, k: int = 1) -> float:
+    sp = LowSpectrum(A, k=k)
+    try:
+        lam, _ = sp.solve()
+    finally:
+        sp.destroy()
+    return float(omega_from_lambda(lam[:1])[0])
