@@ -1,0 +1,67 @@
+# parflow: setup, test, run, benchmark.  Environment: scripts/env.sh (the only place).
+#
+#   make setup                      apt packages (if missing) + .venv + editable install
+#   make test                       pytest serial, then under mpirun -n 2; fails if either fails
+#   make run [SCENE=x.toml] [ARGS=...] [NP=2]
+#                                   mpirun -n $(NP) python -m parflow.shear $(SCENE) $(ARGS)
+#   make bench                      every benchmarks/bench_*.py with the venv python
+#   make clean                      remove .venv and caches (not out/ or runs/)
+
+SHELL := /bin/bash
+.SHELLFLAGS := -euo pipefail -c
+.DEFAULT_GOAL := help
+
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.parflow-setup-stamp
+ENV    := . scripts/env.sh &&
+
+NP          ?= 2
+SCENE       ?=
+ARGS        ?=
+PYTEST_ARGS ?=
+
+.PHONY: help setup test test-serial test-mpi run bench clean
+
+help:
+	@sed -n '1,/^$$/p' Makefile | sed 's/^# \{0,1\}//'
+
+setup: $(STAMP)
+
+# Re-run the setup when the project metadata or the setup itself changes.
+$(STAMP): pyproject.toml scripts/setup.sh scripts/env.sh
+	bash scripts/setup.sh
+
+# Both runs always happen; the target fails if either fails.  Exit code 5 from pytest
+# ("no tests collected") is a failure like any other non-zero code.
+test: $(STAMP)
+	@rc=0; \
+	echo "== pytest (serial) =="; \
+	$(MAKE) --no-print-directory test-serial || rc=1; \
+	echo "== pytest (mpirun -n $(NP)) =="; \
+	$(MAKE) --no-print-directory test-mpi || rc=1; \
+	if [ $$rc -ne 0 ]; then echo "make test: FAILED (see above)"; else echo "make test: serial and mpirun -n $(NP) passed"; fi; \
+	exit $$rc
+
+test-serial: $(STAMP)
+	$(ENV) $(PY) -m pytest tests $(PYTEST_ARGS)
+
+# No cache plugin under MPI: all ranks would write .pytest_cache at the same time.
+# mpirun hands the ranks a pseudo-terminal, so decide on colour from make's own stdout.
+test-mpi: $(STAMP)
+	$(ENV) mpirun -n $(NP) $(PY) -m pytest -p no:cacheprovider \
+	  --color=$$([ -t 1 ] && echo yes || echo no) tests $(PYTEST_ARGS)
+
+run: $(STAMP)
+	$(ENV) mpirun -n $(NP) $(PY) -m parflow.shear $(SCENE) $(ARGS)
+
+bench: $(STAMP)
+	@$(ENV) shopt -s nullglob; files=(benchmarks/bench_*.py); \
+	if [ $${#files[@]} -eq 0 ]; then echo "no benchmarks/bench_*.py yet"; exit 0; fi; \
+	rc=0; for f in "$${files[@]}"; do \
+	  echo "== $$f =="; $(PY) "$$f" || { echo "FAILED: $$f"; rc=1; }; \
+	done; exit $$rc
+
+clean:
+	rm -rf $(VENV) .pytest_cache *.egg-info
+	find . -path ./.git -prune -o -type d -name __pycache__ -prune -exec rm -rf {} +

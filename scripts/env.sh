@@ -1,0 +1,53 @@
+# Run-time environment for parflow.  The single place where it is defined:
+# sourced by scripts/setup.sh, the Makefile recipes and .ci/run.
+#
+#   . scripts/env.sh        # then: .venv/bin/python ..., mpirun -n 2 ...
+#
+# POSIX sh, safe under `set -eu`.  Values the user already exported win, except that
+# PETSC_DIR / SLEPC_DIR are replaced when they do not hold petsc4py / slepc4py.
+
+# Newest directory matching a glob pattern (version-aware sort), or nothing.
+_parflow_newest() {
+    # shellcheck disable=SC2086  # the pattern must glob
+    ls -d $1 2>/dev/null | sort -V | tail -n 1
+}
+
+# Debian ships petsc4py/slepc4py under $PETSC_DIR/lib/python3/dist-packages and finds
+# them through a .pth file that reads PETSC_DIR (falling back to the /usr/lib/petsc
+# alternatives symlink, which is not always present).  So PETSC_DIR must be set.
+if [ -z "${PETSC_DIR:-}" ] || [ ! -d "${PETSC_DIR}/lib/python3/dist-packages/petsc4py" ]; then
+    PETSC_DIR=$(_parflow_newest '/usr/lib/petscdir/petsc*/*-real')
+fi
+if [ -z "${SLEPC_DIR:-}" ] || [ ! -d "${SLEPC_DIR}/lib/python3/dist-packages/slepc4py" ]; then
+    SLEPC_DIR=""
+    if [ -n "${PETSC_DIR}" ]; then
+        # Prefer the SLEPc that matches the PETSc version and arch (petsc3.18/x -> slepc3.18/x).
+        _parflow_v=$(basename "$(dirname "${PETSC_DIR}")" | sed 's/^petsc//')
+        _parflow_a=$(basename "${PETSC_DIR}")
+        if [ -d "/usr/lib/slepcdir/slepc${_parflow_v}/${_parflow_a}" ]; then
+            SLEPC_DIR="/usr/lib/slepcdir/slepc${_parflow_v}/${_parflow_a}"
+        fi
+        unset _parflow_v _parflow_a
+    fi
+    if [ -z "${SLEPC_DIR}" ]; then
+        SLEPC_DIR=$(_parflow_newest '/usr/lib/slepcdir/slepc*/*-real')
+    fi
+fi
+unset -f _parflow_newest
+# Empty on a machine where PETSc is not installed yet (scripts/setup.sh installs it
+# and sources this file again).
+if [ -n "${PETSC_DIR}" ]; then export PETSC_DIR; else unset PETSC_DIR; fi
+if [ -n "${SLEPC_DIR}" ]; then export SLEPC_DIR; else unset SLEPC_DIR; fi
+
+# Open MPI: allow root (containers, CI) and more ranks than cores.
+export OMPI_ALLOW_RUN_AS_ROOT=1
+export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
+export OMPI_MCA_rmaps_base_oversubscribe=1
+
+# One thread per MPI rank: threaded BLAS under mpirun oversubscribes the cores.
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
+
+# Ignore ~/.local/lib/python3.X: a pip-installed numpy 2 there would shadow Debian's
+# numpy 1.24, which petsc4py/h5py/scipy are built against.
+export PYTHONNOUSERSITE=1
