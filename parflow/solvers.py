@@ -143,3 +143,24 @@ def _reason_name(reason: int) -> str:
         if v == reason and not k.startswith("_"):
             return k
     return str(reason)
+
+
+def unused_options() -> list[str]:
+    """Names of options in PETSc's database that no object has queried (PetscOptionsLeftGet,
+    reached through ctypes: petsc4py has no binding for it).  Empty if unavailable."""
+    import ctypes
+    try:
+        path = next(line.split()[-1] for line in open("/proc/self/maps")
+                    if "libpetsc" in line and ".so" in line)
+        lib = ctypes.CDLL(path)
+        pint = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+        n = pint(0)
+        names = ctypes.POINTER(ctypes.c_char_p)()
+        vals = ctypes.POINTER(ctypes.c_char_p)()
+        if lib.PetscOptionsLeftGet(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(vals)):
+            return []
+        out = [names[k].decode() for k in range(n.value)]
+        lib.PetscOptionsLeftRestore(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(vals))
+        return out
+    except (OSError, StopIteration, AttributeError):
+        return []

@@ -1,0 +1,98 @@
+"""Shared command-line plumbing: PETSc options first, one-line user errors, no MPI hangs."""
+from __future__ import annotations
+
+import sys
+import traceback
+
+
+def split_petsc_args(argv: list[str], flags_with_value: set[str]) -> tuple[list[str], list[str]]:
+    """Separate application arguments (positional, ``--flag``) from PETSc options
+    (``-name [value]``, single dash)."""
+    app, petsc = [], []
+    k = 0
+    while k < len(argv):
+        a = argv[k]
+        if a.startswith("--") or a == "-h":
+            app.append(a)
+            if a in flags_with_value and k + 1 < len(argv):
+                app.append(argv[k + 1])
+                k += 1
+        elif a.startswith("-") and len(a) > 1 and not _is_number(a):
+            petsc.append(a)
+            if k + 1 < len(argv) and (not argv[k + 1].startswith("-") or _is_number(argv[k + 1])):
+                petsc.append(argv[k + 1])
+                k += 1
+        else:
+            app.append(a)
+        k += 1
+    return app, petsc
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def init_petsc(petsc_args: list[str]):
+    import petsc4py
+    petsc4py.init([sys.argv[0]] + petsc_args)
+    from petsc4py import PETSc
+    return PETSc
+
+
+def cmdline_option_names(petsc_args: list[str]) -> set[str]:
+    return {a.lstrip("-") for a in petsc_args if a.startswith("-") and not _is_number(a)}
+
+
+def collective(comm, fn, *args):
+    """Run ``fn`` on rank 0 only; an InputError there is raised on every rank (no hang).
+    Returns fn's result, broadcast."""
+    from .state import InputError
+    result, err = None, None
+    if comm.getRank() == 0:
+        try:
+            result = fn(*args)
+        except InputError as exc:
+            err = str(exc)
+    result, err = comm.tompi4py().bcast((result, err), root=0)
+    if err is not None:
+        raise InputError(err)
+    return result
+
+
+def run_main(prog: str, body) -> int:
+    """Call ``body()``; map errors to exit codes without hanging other ranks.
+
+    InputError (collective by construction): one line on rank 0, exit 2.
+    SolveError/Jammed raised collectively: one line, exit 1.
+    Anything else: traceback, then MPI_Abort when running on several ranks.
+    """
+    from mpi4py import MPI
+
+    from .solvers import SolveError
+    from .state import InputError
+    comm = MPI.COMM_WORLD
+    try:
+        return body() or 0
+    except InputError as exc:
+        if comm.rank == 0:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except SolveError as exc:
+        if comm.rank == 0:
+            print(f"{prog}: solver error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        if comm.size > 1:
+            comm.Abort(130)
+        return 130
+    except Exception:
+        traceback.print_exc()
+        sys.stderr.flush()
+        if comm.size > 1:
+            comm.Abort(1)
+        return 1

@@ -1,0 +1,359 @@
+"""The step loop: scene -> model -> State -> legs of adaptive steps -> HDF5 (DESIGN §3).
+
+Every rank runs the same loop on replicated geometry; PETSc distributes the algebra; rank 0
+alone writes the file and prints.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+from petsc4py import PETSc
+
+from . import __version__
+from .integrate import Heun, Jammed, StepControl
+from .io import RunWriter, load_group, read_run
+from .models import get_model
+from .solvers import SolveError, unused_options
+from .state import Bonds, InputError, State
+from .system import BondedSystem
+
+log = logging.getLogger("parflow")
+
+
+def setup_logging(comm, quiet: bool) -> None:
+    log.handlers.clear()
+    log.propagate = False
+    if comm.getRank() == 0 and not quiet:
+        h = logging.StreamHandler(sys.stderr)
+        h.setFormatter(logging.Formatter("[parflow] %(message)s"))
+        log.addHandler(h)
+        log.setLevel(logging.INFO)
+    else:
+        log.addHandler(logging.NullHandler())
+
+
+def git_commit() -> str:
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        out = subprocess.run(["git", "-C", here, "rev-parse", "HEAD"], capture_output=True,
+                             text=True, timeout=5)
+        dirty = subprocess.run(["git", "-C", here, "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "") if out.returncode == 0 else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def versions() -> str:
+    import h5py
+    import scipy
+    from mpi4py import MPI
+    v = dict(parflow=__version__, python=sys.version.split()[0], numpy=np.__version__,
+             scipy=scipy.__version__, h5py=h5py.__version__,
+             petsc=".".join(map(str, PETSc.Sys.getVersion())), mpi=MPI.Get_library_version().split("\n")[0])
+    try:
+        from slepc4py import SLEPc
+        v["slepc"] = ".".join(map(str, SLEPc.Sys.getVersion()))
+    except ImportError:
+        pass
+    return "; ".join(f"{k}={x}" for k, x in v.items())
+
+
+def state_groups(state: State) -> dict:
+    arrays = dict(s=state.s, h0=state.h0, E=state.E)
+    if state.bonds is not None:
+        bd = state.bonds
+        arrays["bonds"] = dict(i=bd.i, j=bd.j, shift=bd.shift, l0=bd.l0)
+    return arrays
+
+
+class Leg:
+    """Stop rules of one leg of the protocol, and its progress for the ETA."""
+
+    def __init__(self, spec: dict, index: int, n_legs: int):
+        self.spec, self.index, self.n_legs = spec, index, n_legs
+        self.direction = +1 if spec["direction"] == "forward" else -1
+
+    def reason_to_stop(self, obs: dict, leg_strain: float, leg_steps: int) -> str | None:
+        sp = self.spec
+        for q in ("sigma", "V2"):
+            if f"{q}_above" in sp and obs[q] >= sp[f"{q}_above"]:
+                return f"{q} = {obs[q]:.4g} >= {sp[f'{q}_above']:g}"
+            if f"{q}_below" in sp and obs[q] <= sp[f"{q}_below"]:
+                return f"{q} = {obs[q]:.4g} <= {sp[f'{q}_below']:g}"
+        if "strain" in sp and leg_strain >= sp["strain"] * (1 - 1e-12):
+            return f"leg strain {leg_strain:.6g} reached"
+        if "max_steps" in sp and leg_steps >= sp["max_steps"]:
+            return f"leg step budget {sp['max_steps']} used"
+        return None
+
+    def fraction(self, obs: dict, start: dict, leg_strain: float, leg_steps: int) -> float:
+        sp, f = self.spec, 0.0
+        for q in ("sigma", "V2"):
+            x, x0 = obs[q], start[q]
+            if x > 0 and x0 > 0:
+                if f"{q}_above" in sp and sp[f"{q}_above"] > x0:
+                    f = max(f, math.log(x / x0) / math.log(sp[f"{q}_above"] / x0))
+                if f"{q}_below" in sp and sp[f"{q}_below"] < x0:
+                    f = max(f, math.log(x0 / x) / math.log(x0 / sp[f"{q}_below"]))
+        if "strain" in sp:
+            f = max(f, leg_strain / sp["strain"])
+        if "max_steps" in sp:
+            f = max(f, leg_steps / sp["max_steps"])
+        return min(max(f, 0.0), 1.0)
+
+
+class Run:
+    def __init__(self, scene: dict, comm, path: str, quiet: bool = False,
+                 cmdline_options: set[str] | None = None, restart: bool = False,
+                 max_steps: int | None = None):
+        self.scene, self.comm, self.path = scene, comm, path
+        self.rank = comm.getRank()
+        self.quiet = quiet
+        self.restart = restart
+        if max_steps is not None:
+            scene["protocol"]["max_steps"] = max_steps
+        self.model = get_model(scene["model"]["name"])
+        self.control = StepControl(**scene["integrator"])
+        self.control.validate()
+        self.obs_cfg = scene["observables"]
+        self.cmdline = cmdline_options or set()
+
+    # ------------------------------------------------------------------------------------
+    def _build_state(self) -> State:
+        state = None
+        if self.rank == 0:
+            state = self.model.build(self.scene["model"], self.scene["seed"])
+        return self.comm.tompi4py().bcast(state, root=0)
+
+    def _observe(self, state, F) -> dict:
+        obs = dict(sigma=F.sigma, sigma_tb=F.sigma_tb, sigma_mismatch=F.sigma_mismatch,
+                   pressure=F.pressure,
+                   V2=float(np.einsum("id,id->", F.V_na, F.V_na)) / state.n,
+                   residual=F.info.residual, backward_error=F.info.backward_error,
+                   refinements=F.info.refinements)
+        obs.update(self.model.observables(state, F))
+        return obs
+
+    def _omega_min(self, system) -> tuple[float, np.ndarray]:
+        from .spectrum import LowSpectrum, omega_from_lambda
+        if self._spec is None:
+            self._spec = LowSpectrum(system.ops.N, k=self.obs_cfg["n_eigs"])
+        lam, _ = self._spec.solve()
+        return float(omega_from_lambda(lam[:1])[0]), omega_from_lambda(lam)
+
+    # ------------------------------------------------------------------------------------
+    def execute(self) -> str:
+        comm, scene = self.comm, self.scene
+        t_start = time.monotonic()
+        writer = RunWriter(self.path, scene["output"]["flush_seconds"]) if self.rank == 0 else None
+        self._spec = None
+        if self.restart:
+            state, ck = self._load_checkpoint()
+        else:
+            state, ck = self._build_state(), None
+        system = BondedSystem(comm, state, scene["solver"]["preset"])
+        integ = Heun(system, self.control)
+        legs = [Leg(x, k, len(scene["protocol"]["leg"])) for k, x in enumerate(scene["protocol"]["leg"])]
+
+        if ck is None:
+            s, gamma, step, strain, dg = state.s.copy(), state.gamma, 0, 0.0, self.control.initial_dgamma
+            leg_k, leg_strain, leg_steps, level = 0, 0.0, 0, None
+        else:
+            s, gamma, step, strain, dg = ck["s"], ck["gamma"], ck["step"], ck["strain"], ck["dgamma"]
+            leg_k, leg_strain, leg_steps = ck["leg"], ck["leg_strain"], ck["leg_steps"]
+            level = None if ck["level"] == -10**9 else ck["level"]
+
+        F = system.evaluate(s, gamma, what="initial force")
+        solver_desc = system.tau_solver.describe()
+        opts = PETSc.Options().getAll()
+        unused = [o for o in unused_options() if not o.startswith(("spec_", "options_left"))]
+        if unused:
+            log.warning("WARNING: PETSc options set but not used: %s", ", ".join("-" + u for u in unused))
+        if self.rank == 0:
+            if ck is None:
+                attrs = dict(parflow_version=__version__, scene=scene["text"],
+                             petsc_options="\n".join(f"-{k} {v}" for k, v in sorted(opts.items())),
+                             solver=solver_desc, versions=versions(), n_ranks=comm.getSize(),
+                             git_commit=git_commit(), created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                             status="running", message="", model=scene["model"]["name"])
+                writer.create(attrs, {"initial": (state_groups(state), {}),
+                                      "model": ({}, {k: v for k, v in state.meta.items()
+                                                     if isinstance(v, (int, float, str))})})
+            else:
+                writer.reopen(ck["n_rows"], ck["step"])
+                writer.set_attrs(status="running", restarted_at_step=step,
+                                 restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        log.info("%s: %s, N = %d, Nc = %d, %d rank(s), solver %s%s", scene["model"]["name"],
+                 scene["title"] or "untitled", state.n, len(state.bonds), comm.getSize(),
+                 solver_desc, f", restarting at step {step}" if ck else "")
+
+        status, message = "running", ""
+        rows_written = ck["n_rows"] if ck else 0
+        self._system = system
+        last_ck_step, last_ck_time = step, time.monotonic()
+        last_progress = 0.0
+        t_leg = time.monotonic()
+        steps_at_leg_start = step
+
+        def record(F, res, obs, wom):
+            nonlocal rows_written
+            row = dict(step=step, gamma=gamma, strain=strain, leg=leg_k,
+                       direction=legs[min(leg_k, len(legs) - 1)].direction,
+                       dgamma=res.dgamma if res else 0.0, err=res.err if res else 0.0,
+                       rejected=res.rejected if res else 0,
+                       length_error=res.length_error if res else float(np.max(np.abs(F.ell - state.bonds.l0))),
+                       proj_iter=res.proj_iter if res else 0,
+                       omega_min=wom, wall=time.monotonic() - t_start)
+            row.update(obs)
+            if writer:
+                writer.append(row)
+            rows_written += 1
+
+        def checkpoint():
+            if writer:
+                writer.set_checkpoint(dict(s=s), dict(gamma=gamma, step=step, strain=strain,
+                                                      dgamma=dg, leg=leg_k, leg_strain=leg_strain,
+                                                      leg_steps=leg_steps, n_rows=rows_written,
+                                                      level=-10**9 if level is None else level))
+
+        obs = self._observe(state, F)
+        leg_start_obs = dict(obs)
+        if ck is None:
+            wom = self._omega_min(system)[0] if self.obs_cfg["omega_min_every"] else float("nan")
+            record(F, None, obs, wom)
+            self._analysis(writer, system, state, F, step, gamma, obs)
+        try:
+            while leg_k < len(legs):
+                leg = legs[leg_k]
+                why = leg.reason_to_stop(obs, leg_strain, leg_steps)
+                if why is None and step >= scene["protocol"]["max_steps"]:
+                    status, message = "budget", f"step budget protocol.max_steps = {step} used"
+                    log.info("stopping: %s", message)
+                    break
+                if why is not None:
+                    log.info("leg %d/%d (%s) done at step %d, gamma = %.10g: %s", leg_k + 1,
+                             len(legs), leg.spec["direction"], step, gamma, why)
+                    self._analysis(writer, system, state, F, step, gamma, obs)
+                    leg_k, leg_strain, leg_steps = leg_k + 1, 0.0, 0
+                    leg_start_obs, t_leg, steps_at_leg_start = dict(obs), time.monotonic(), step
+                    continue
+                cap = leg.spec["strain"] - leg_strain if "strain" in leg.spec else None
+                res = integ.step(s, gamma, F, leg.direction, dg, dg_cap=cap)
+                s, gamma, F, dg = res.s, res.gamma, res.F, res.next_dgamma
+                step += 1
+                leg_steps += 1
+                strain += abs(res.dgamma)
+                leg_strain += abs(res.dgamma)
+                obs = self._observe(state, F)
+                every = self.obs_cfg["omega_min_every"]
+                wom = self._omega_min(system)[0] if every and step % every == 0 else float("nan")
+                record(F, res, obs, wom)
+                if not (np.isfinite(obs["sigma"]) and np.isfinite(obs["V2"])):
+                    raise SolveError(f"non-finite stress at step {step}, gamma = {gamma:.10g}")
+                level = self._maybe_analysis(writer, system, state, F, step, gamma, obs, level)
+                if self.obs_cfg["snapshot_every"] and step % self.obs_cfg["snapshot_every"] == 0 and writer:
+                    writer.add_group(f"snapshots/{step:08d}", dict(s=s, V_na=F.V_na, tau=F.tau),
+                                     dict(step=step, gamma=gamma, sigma=F.sigma))
+                now = time.monotonic()
+                if step - last_ck_step >= scene["output"]["checkpoint_every"] or \
+                        now - last_ck_time >= 60 * scene["output"]["checkpoint_minutes"]:
+                    checkpoint()
+                    last_ck_step, last_ck_time = step, now
+                if writer and writer.due():
+                    writer.flush()
+                if now - last_progress >= scene["output"]["progress_seconds"]:
+                    last_progress = now
+                    frac = leg.fraction(obs, leg_start_obs, leg_strain, leg_steps)
+                    rate = (step - steps_at_leg_start) / max(now - t_leg, 1e-9)
+                    eta = (now - t_leg) * (1 - frac) / frac if frac > 0 else float("nan")
+                    log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
+                             "  %.1f steps/s  leg ETA %s", step, leg_k + 1, len(legs),
+                             "fwd" if leg.direction > 0 else "rev", gamma, obs["sigma"], obs["V2"],
+                             abs(res.dgamma), f"  omega_min={wom:.3e}" if np.isfinite(wom) else "",
+                             rate, _hms(eta))
+            else:
+                status, message = "complete", f"all {len(legs)} legs done"
+        except Jammed as exc:
+            status, message = "jammed", str(exc)
+            log.info("stopping: %s", message)
+            self._analysis(writer, system, state, F, step, gamma, obs)
+        except BaseException as exc:
+            status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {gamma:.10g}, sigma = {obs['sigma']:.4g})"
+            if writer:
+                checkpoint()
+                writer.set_attrs(status=status, message=message, steps=step)
+                writer.flush()
+            raise
+        checkpoint()
+        if writer:
+            writer.set_attrs(status=status, message=message, steps=step,
+                             wall_seconds=time.monotonic() - t_start,
+                             n_factorisations=system.n_factor)
+            writer.flush()
+        log.info("%s: %s; %d steps, %.1f s; wrote %s", status, message, step,
+                 time.monotonic() - t_start, self.path)
+        if self._spec is not None:
+            self._spec.destroy()
+        system.destroy()
+        return status
+
+    # ------------------------------------------------------------------------------------
+    def _maybe_analysis(self, writer, system, state, F, step, gamma, obs, level):
+        cfg = self.obs_cfg
+        if cfg["analysis_every"] and step % cfg["analysis_every"] == 0:
+            self._analysis(writer, system, state, F, step, gamma, obs)
+            return level
+        if cfg["analysis_per_decade"] > 0:
+            q = obs[cfg["analysis_quantity"]]
+            if q > 0:
+                new = int(math.floor(cfg["analysis_per_decade"] * math.log10(q)))
+                if level is not None and new != level:
+                    self._analysis(writer, system, state, F, step, gamma, obs)
+                return new
+        return level
+
+    def _analysis(self, writer, system, state, F, step, gamma, obs):
+        cfg = self.obs_cfg
+        if not (cfg["analysis_every"] or cfg["analysis_per_decade"]):
+            return
+        out = self.model.analyses(system, state, F)
+        if writer:
+            attrs = dict(step=step, gamma=gamma, **{k: v for k, v in obs.items()})
+            attrs.update(out["scalars"])
+            writer.add_group(f"analysis/{step:08d}", out["arrays"], attrs)
+
+    def _load_checkpoint(self):
+        f = None
+        if self.rank == 0:
+            f = read_run(self.path)
+        ok = self.comm.tompi4py().bcast(f is not None and "checkpoint" in f, root=0)
+        if not ok:
+            raise InputError(f"{self.path!r} has no checkpoint to restart from")
+        data = None
+        if self.rank == 0:
+            init = load_group(f["initial"])
+            ck = dict(f["checkpoint"].attrs)
+            ck["s"] = f["checkpoint/s"][()]
+            meta = dict(f["model"].attrs) if "model" in f else {}
+            f.close()
+            data = (init, ck, meta)
+        init, ck, meta = self.comm.tompi4py().bcast(data, root=0)
+        bd = init["bonds"]
+        state = State(init["s"], init["h0"], init["E"], 0.0,
+                      Bonds(bd["i"], bd["j"], bd["shift"], bd["l0"]), meta=meta)
+        ck = {k: (v.item() if hasattr(v, "item") and np.ndim(v) == 0 else v) for k, v in ck.items()}
+        return state, ck
+
+
+def _hms(t: float) -> str:
+    if not np.isfinite(t):
+        return "--:--:--"
+    t = int(t)
+    return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"

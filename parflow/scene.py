@@ -1,0 +1,209 @@
+"""Scenes: the whole description of a run, as TOML (docs/scenes.md).
+
+``load_scene(text)`` parses, fills defaults and validates; every error is an
+:class:`InputError` naming the key, what was wrong and what is allowed.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import tomllib
+
+from .models import MODELS, get_model
+from .solvers import PRESETS
+from .state import InputError
+
+DEFAULT_SCENE = """\
+# parflow default scene: a rigid chain in planar extension (paper Fig. 2, mu = 0),
+# driven forward until <V^2> = 1e8 (close to jamming), then reversed (buckling).
+title = "chain N=10000, eps=0.1, mu=0: forward to <V^2>=1e8, then reverse"
+seed = 1
+
+[model]
+name = "chain"
+N = 10000
+epsilon = 0.1
+mu = 0
+
+[[protocol.leg]]
+direction = "forward"
+V2_above = 1e8
+
+[[protocol.leg]]
+direction = "reverse"
+strain = 0.02
+V2_below = 1.0
+
+[observables]
+analysis_quantity = "V2"
+analysis_per_decade = 2
+
+[output]
+path = "out/default.h5"
+"""
+
+_POS = (lambda v: v > 0, "> 0")
+_NONNEG = (lambda v: v >= 0, ">= 0")
+
+# section -> key -> (type, default, (check, allowed-text) or None)
+SCHEMA = {
+    "": {
+        "title": (str, "", None),
+        "seed": (int, 1, _NONNEG),
+    },
+    "protocol": {
+        "max_steps": (int, 1_000_000, _POS),
+        "leg": (list, None, None),
+    },
+    "integrator": {
+        "tol": (float, 0.05, (lambda v: 0 < v < 1, "in (0, 1)")),
+        "max_displacement": (float, 0.05, _POS),
+        "max_dgamma": (float, 1e-2, _POS),
+        "min_dgamma": (float, 1e-14, _POS),
+        "initial_dgamma": (float, 1e-4, _POS),
+        "length_tol": (float, 1e-12, _POS),
+    },
+    "observables": {
+        "omega_min_every": (int, 0, _NONNEG),
+        "n_eigs": (int, 1, _POS),
+        "analysis_quantity": (str, "V2", (lambda v: v in ("V2", "sigma"), "'V2' or 'sigma'")),
+        "analysis_per_decade": (float, 0.0, _NONNEG),
+        "analysis_every": (int, 0, _NONNEG),
+        "snapshot_every": (int, 0, _NONNEG),
+    },
+    "solver": {
+        "preset": (str, "direct", (lambda v: v in PRESETS, f"one of {sorted(PRESETS)}")),
+    },
+    "output": {
+        "path": (str, "out/run.h5", (lambda v: len(v) > 0, "a non-empty path")),
+        "flush_seconds": (float, 30.0, _POS),
+        "checkpoint_every": (int, 500, _POS),
+        "checkpoint_minutes": (float, 5.0, _POS),
+        "progress_seconds": (float, 2.0, _POS),
+    },
+}
+LEG = {
+    "direction": (str, None, (lambda v: v in ("forward", "reverse"), "'forward' or 'reverse'")),
+    "sigma_above": (float, None, _POS),
+    "sigma_below": (float, None, _POS),
+    "V2_above": (float, None, _POS),
+    "V2_below": (float, None, _POS),
+    "strain": (float, None, _POS),
+    "max_steps": (int, None, _POS),
+}
+STOP_KEYS = ("sigma_above", "sigma_below", "V2_above", "V2_below", "strain", "max_steps")
+SECTIONS = ("model", "protocol", "integrator", "observables", "solver", "output", "petsc")
+
+
+def _unknown(key: str, allowed, where: str) -> InputError:
+    close = difflib.get_close_matches(key, list(allowed), n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else f"; allowed: {', '.join(sorted(allowed))}"
+    return InputError(f"unknown key {where}{key!r}{hint}")
+
+
+def _typed(value, typ, name):
+    if typ is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if typ is int and isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
+        value = int(value)
+    if typ in (int, float) and isinstance(value, bool) or not isinstance(value, typ):
+        raise InputError(f"{name} must be of type {typ.__name__}, got {value!r} "
+                         f"({type(value).__name__})")
+    if typ is float and not math.isfinite(value):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+def _fill(table: dict, schema: dict, where: str) -> dict:
+    out = {}
+    for key in table:
+        if key not in schema:
+            raise _unknown(key, schema, where)
+    for key, (typ, default, check) in schema.items():
+        if key not in table:
+            if default is not None:
+                out[key] = default
+            continue
+        value = _typed(table[key], typ, f"{where}{key}")
+        if check is not None and not check[0](value):
+            raise InputError(f"{where}{key} = {value!r} is out of range: must be {check[1]}")
+        out[key] = value
+    return out
+
+
+def load_scene(text: str, source: str = "<scene>") -> dict:
+    """Parse and validate a scene; returns a dict with every default filled in."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{source}: malformed TOML: {exc}") from None
+    top = {k: v for k, v in raw.items() if not isinstance(v, dict)}
+    for key, value in raw.items():
+        if isinstance(value, dict) and key not in SECTIONS:
+            raise _unknown(key, SECTIONS, "section ")
+    scene = _fill(top, SCHEMA[""], "")
+    for section in SECTIONS:
+        table = raw.get(section, {})
+        if not isinstance(table, dict):
+            raise InputError(f"[{section}] must be a table")
+        if section == "model":
+            scene["model"] = _model(table)
+        elif section == "petsc":
+            scene["petsc"] = _petsc(table)
+        else:
+            scene[section] = _fill(table, SCHEMA[section], f"{section}.")
+    scene["protocol"]["leg"] = _legs(raw.get("protocol", {}).get("leg"))
+    integ = scene["integrator"]
+    if integ["min_dgamma"] >= integ["max_dgamma"]:
+        raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
+    scene["text"] = text
+    return scene
+
+
+def _model(table: dict) -> dict:
+    name = table.get("name", "chain")
+    if not isinstance(name, str):
+        raise InputError(f"model.name must be a string, one of {list(MODELS)}")
+    model = get_model(name)
+    schema = {"name": (str, name, None)}
+    for key, (typ, default, check, desc) in model.PARAMS.items():
+        schema[key] = (typ, default, (check, desc))
+    return _fill(table, schema, "model.")
+
+
+def _petsc(table: dict) -> dict:
+    out = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            raise InputError(f"petsc.{key}: PETSc options are flat: write "
+                             f"{key}_<option> = value")
+        if not isinstance(value, (str, int, float, bool)):
+            raise InputError(f"petsc.{key} must be a string, number or boolean")
+        out[key.lstrip("-")] = value
+    return out
+
+
+def _legs(legs) -> list:
+    if legs is None:
+        raise InputError("the scene has no protocol: add at least one [[protocol.leg]] with "
+                         "direction = 'forward' and a stop rule (e.g. V2_above = 1e8)")
+    if not isinstance(legs, list) or not all(isinstance(x, dict) for x in legs):
+        raise InputError("protocol.leg must be an array of tables ([[protocol.leg]])")
+    out = []
+    for k, leg in enumerate(legs):
+        where = f"protocol.leg[{k}]."
+        if "direction" not in leg:
+            raise InputError(f"{where}direction is missing: 'forward' or 'reverse'")
+        leg = _fill(leg, LEG, where)
+        if not any(key in leg for key in STOP_KEYS):
+            raise InputError(f"{where[:-1]} has no stop rule: give one of {', '.join(STOP_KEYS)}")
+        out.append(leg)
+    return out
+
+
+def with_overrides(scene: dict, output: str | None = None) -> dict:
+    scene = copy.deepcopy(scene)
+    if output:
+        scene["output"]["path"] = output
+    return scene

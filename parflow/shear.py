@@ -1,0 +1,99 @@
+"""Main job: ``mpirun -n 2 python -m parflow.shear [scene.toml] [options] [PETSc options]``.
+
+Without a scene file the embedded default scene runs (a chain in planar extension, forward
+to <V^2> = 1e8 and back).  Any ``-option value`` with a single dash goes to PETSc and
+overrides the scene's [petsc] table (e.g. ``-tau_pc_factor_mat_solver_type mumps``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .cli import cmdline_option_names, collective, init_petsc, run_main, split_petsc_args
+
+USAGE_FLAGS = {"--output", "--restart", "--max-steps"}
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m parflow.shear",
+        description="Run a parflow scene (default: the embedded chain scene).",
+        epilog="Single-dash options (-tau_ksp_type ...) are passed to PETSc; they override "
+               "the scene's [petsc] table.")
+    p.add_argument("scene", nargs="?", help="scene TOML file (default: embedded chain scene)")
+    p.add_argument("--output", help="output HDF5 file (default: the scene's output.path)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--restart", metavar="FILE", help="continue the run saved in FILE from its checkpoint")
+    p.add_argument("--max-steps", type=int, help="override protocol.max_steps (e.g. to extend a restarted run)")
+    p.add_argument("--print-scene", action="store_true", help="print the default scene and exit")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    app, petsc_args = split_petsc_args(argv, USAGE_FLAGS)
+    args = parser().parse_args(app)
+    if args.print_scene:
+        from .scene import DEFAULT_SCENE
+        print(DEFAULT_SCENE, end="")
+        return 0
+    PETSc = init_petsc(petsc_args)
+    return run_main("parflow.shear", lambda: _run(args, petsc_args, PETSc))
+
+
+def _read(path):
+    from .state import InputError
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.read()
+    except OSError as exc:
+        raise InputError(f"cannot read scene file {path!r}: {exc.strerror}") from None
+
+
+def _restart_scene(path):
+    from .io import read_run
+    f = read_run(path)
+    try:
+        if "checkpoint" not in f:
+            from .state import InputError
+            raise InputError(f"{path!r} has no checkpoint: it cannot be restarted")
+        return str(f.attrs["scene"])
+    finally:
+        f.close()
+
+
+def _run(args, petsc_args, PETSc) -> int:
+    from .io import check_output_path
+    from .run import Run, setup_logging
+    from .scene import DEFAULT_SCENE, load_scene, with_overrides
+    from .solvers import insert_options
+    from .state import InputError
+
+    comm = PETSc.COMM_WORLD
+    setup_logging(comm, args.quiet)
+    if args.restart:
+        if args.scene or args.output:
+            raise InputError("--restart FILE takes the scene and output from FILE: "
+                             "do not give a scene or --output with it")
+        text = collective(comm, _restart_scene, args.restart)
+        scene = load_scene(text, args.restart)
+        path = args.restart
+    else:
+        if args.scene:
+            text, source = collective(comm, _read, args.scene), args.scene
+        else:
+            text, source = DEFAULT_SCENE, "<default scene>"
+        scene = with_overrides(load_scene(text, source), args.output)
+        path = scene["output"]["path"]
+        collective(comm, check_output_path, path, args.overwrite)
+    if args.max_steps is not None and args.max_steps <= 0:
+        raise InputError("--max-steps must be a positive integer")
+    insert_options(scene["petsc"], cmdline_option_names(petsc_args))
+    status = Run(scene, comm, path, quiet=args.quiet, cmdline_options=cmdline_option_names(petsc_args),
+                 restart=bool(args.restart), max_steps=args.max_steps).execute()
+    return 0 if status in ("complete", "jammed", "budget") else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
