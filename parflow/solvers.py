@@ -101,7 +101,7 @@ class CholeskySolver:
         reason = self.ksp.getConvergedReason()
         if reason < 0:
             name = _reason_name(reason)
-            if reason == PETSc.KSP.ConvergedReason.DIVERGED_PC_FAILED:
+            if name in ("DIVERGED_PCSETUP_FAILED", "DIVERGED_PC_FAILED", "DIVERGED_NANORINF"):
                 raise SingularOperator(f"{self.prefix}solve ({what}): the Cholesky factorisation "
                                        f"failed ({name}); N is singular to working precision")
             raise SolveError(f"{self.prefix}solve ({what}) did not converge: {name}")

@@ -43,6 +43,8 @@ if [ -n "${SLEPC_DIR}" ]; then export SLEPC_DIR; else unset SLEPC_DIR; fi
 export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMPI_MCA_rmaps_base_oversubscribe=1
+# Yield the core while waiting in MPI: keeps 2 ranks usable when another process shares the cores.
+export OMPI_MCA_mpi_yield_when_idle="${OMPI_MCA_mpi_yield_when_idle:-1}"
 
 # One thread per MPI rank: threaded BLAS under mpirun oversubscribes the cores.
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
