@@ -1,0 +1,148 @@
+"""Jammed soft-disc packings (parflow.models.packing).  Serial numpy only: under
+``mpirun -n N`` every rank runs these independently."""
+import numpy as np
+import pytest
+
+from parflow.models import packing as pk
+from parflow.state import InputError
+
+
+@pytest.fixture(scope="module")
+def pack():
+    return pk.make_packing(128, 0.88, seed=3)
+
+
+def brute_pairs(pos, radii, box):
+    """All overlapping pairs by O(N^2) minimum image: (i, j, r_vec, overlap)."""
+    n = pos.shape[0]
+    i, j = np.triu_indices(n, 1)
+    dr = pos[j] - pos[i]
+    dr -= box * np.round(dr / box)
+    r = np.linalg.norm(dr, axis=1)
+    sig = radii[i] + radii[j]
+    m = r < sig
+    return i[m], j[m], dr[m], 1.0 - r[m] / sig[m]
+
+
+def test_mixture_and_box(pack):
+    assert pack.n == 128 and pack.d == 2
+    assert np.count_nonzero(pack.radii == 0.5) == 64
+    assert np.count_nonzero(np.isclose(pack.radii, 0.7)) == 64
+    assert pack.phi == pytest.approx(0.88)
+    assert pk.packing_fraction(pack.radii, pack.box) == pytest.approx(0.88, rel=1e-12)
+    s = pack.reduced
+    assert np.all((s >= 0) & (s < 1))
+
+
+def test_force_tolerance_reached(pack):
+    # recompute the forces from scratch by brute force
+    i, j, dr, ov = brute_pairs(pack.positions, pack.radii, pack.box)
+    sig = pack.radii[i] + pack.radii[j]
+    r = np.linalg.norm(dr, axis=1)
+    f = (ov / sig)[:, None] * dr / r[:, None]           # force on j
+    F = np.zeros_like(pack.positions)
+    np.add.at(F, j, f)
+    np.add.at(F, i, -f)
+    fmax = np.sqrt((F ** 2).sum(1)).max()
+    fscale = (ov / sig).mean()
+    assert fscale == pytest.approx(pack.force_scale, rel=1e-6)
+    assert fmax < max(pack.ftol * fscale, pk.force_floor(pack.box)) * 1.0001
+    assert pack.max_force == pytest.approx(fmax, rel=1e-3, abs=1e-15)
+    p = (ov / sig * r).sum() / (2 * np.prod(pack.box))
+    assert pack.pressure == pytest.approx(p, rel=1e-10)
+    assert pack.energy == pytest.approx(0.5 * (ov ** 2).sum(), rel=1e-10)
+
+
+def test_contacts_match_distances_and_no_rattler_left(pack):
+    i, j, dr, ov = brute_pairs(pack.positions, pack.radii, pack.box)
+    nr = ~pack.rattler
+    m = nr[i] & nr[j]
+    brute = set(zip(i[m].tolist(), j[m].tolist()))
+    got = set(zip(pack.contacts_i.tolist(), pack.contacts_j.tolist()))
+    assert got == brute
+    assert np.all(pack.contacts_i < pack.contacts_j)
+    # image shifts: r = L (s_j + n - s_i) is the overlapping minimum-image vector
+    r = pack.contact_vectors()
+    sig = pack.radii[pack.contacts_i] + pack.radii[pack.contacts_j]
+    assert np.all(np.linalg.norm(r, axis=1) < sig)
+    assert pack.contacts_shift.dtype.kind == "i"
+    # no rattler remains: every kept particle has >= d + 1 contacts among the kept
+    deg = np.bincount(pack.contacts_i, minlength=pack.n) + np.bincount(pack.contacts_j, minlength=pack.n)
+    assert np.all(deg[nr] >= pack.d + 1)
+    assert np.all(deg[pack.rattler] == 0)
+    assert pack.z == pytest.approx(2 * len(got) / nr.sum())
+    # jammed: at least isostatic (Nc >= d (N' - 1) + 1)
+    assert len(got) >= pack.d * (nr.sum() - 1) + 1
+    assert pack.pressure > 0
+
+
+def test_same_seed_same_packing(pack):
+    again = pk.make_packing(128, 0.88, seed=3)
+    assert np.array_equal(again.positions, pack.positions)
+    assert np.array_equal(again.radii, pack.radii)
+    assert np.array_equal(again.contacts_i, pack.contacts_i)
+    assert np.array_equal(again.contacts_shift, pack.contacts_shift)
+    assert again.iterations == pack.iterations
+    other = pk.make_packing(128, 0.88, seed=4)
+    assert not np.array_equal(other.positions, pack.positions)
+
+
+def test_pair_list_forces_match_brute_force():
+    rng = np.random.default_rng(0)
+    n = 64
+    radii = pk.binary_radii(n)
+    L = pk.box_side(radii, 0.9, 2)
+    box = np.full(2, L)
+    X = (rng.random((n, 2)) * L).T.copy()
+    pl = pk._PairList(radii, box, 0.3)
+    X = pl.build(X)
+    X += 0.1 * (rng.random(X.shape) - 0.5)          # move less than skin/2, unwrapped
+    F = np.empty_like(X)
+    pl.forces(X, F)
+    i, j, dr, ov = brute_pairs(X.T % L, radii, box)
+    sig = radii[i] + radii[j]
+    f = (ov / sig)[:, None] * dr / np.linalg.norm(dr, axis=1)[:, None]
+    Fb = np.zeros((n, 2))
+    np.add.at(Fb, j, f)
+    np.add.at(Fb, i, -f)
+    assert np.allclose(F.T, Fb, atol=1e-14)
+
+
+def test_target_pressure():
+    p = pk.make_packing(64, 0.87, seed=1, pressure=0.02, pressure_rtol=0.02)
+    assert p.pressure == pytest.approx(0.02, rel=0.02)
+    assert len(p.info["stages"]) >= 2
+
+
+def test_three_dimensions():
+    p = pk.make_packing(128, 0.72, d=3, seed=2)
+    assert p.d == 3 and p.box.shape == (3,)
+    nr = ~p.rattler
+    assert p.n_contacts >= 3 * (nr.sum() - 1) + 1
+    assert p.z >= 6.0 - 0.2
+
+
+def test_below_jamming_is_refused():
+    with pytest.raises(InputError, match=r"no contacts after minimisation; phi_J ≈ 0.843"):
+        pk.make_packing(64, 0.75, seed=0)
+
+
+@pytest.mark.parametrize("kw, msg", [
+    (dict(n=4, phi=0.88), "too small"),
+    (dict(n=64, phi=1.2), "phi must be in"),
+    (dict(n=64, phi=0.88, ftol=0.0), "ftol"),
+    (dict(n=64, phi=0.88, pressure=-1.0), "pressure"),
+    (dict(n=64, phi=None), "give phi"),
+    (dict(n=64, phi=0.88, d=1), "d must be"),
+])
+def test_bad_inputs(kw, msg):
+    with pytest.raises(InputError, match=msg):
+        pk.make_packing(**kw)
+
+
+def test_remove_rattlers_cascade():
+    # a triangle (degree 2 each) hanging off nothing: all rattlers in 2D
+    i = np.array([0, 1, 0])
+    j = np.array([1, 2, 2])
+    r, keep = pk.remove_rattlers(3, i, j, 2)
+    assert r.all() and not keep.any()
