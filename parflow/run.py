@@ -144,7 +144,7 @@ class Run:
     def _omega_min(self, system) -> tuple[float, np.ndarray]:
         from .spectrum import LowSpectrum, omega_from_lambda
         if self._spec is None:
-            self._spec = LowSpectrum(system.ops.N, k=self.obs_cfg["n_eigs"])
+            self._spec = LowSpectrum(system.ops.N, k=self.obs_cfg["n_eigs"], parallel=system.parallel)
         lam, _ = self._spec.solve()
         return float(omega_from_lambda(lam[:1])[0]), omega_from_lambda(lam)
 
@@ -158,7 +158,7 @@ class Run:
             state, ck = self._load_checkpoint()
         else:
             state, ck = self._build_state(), None
-        system = BondedSystem(comm, state, scene["solver"]["preset"])
+        system = BondedSystem(comm, state, scene["solver"]["preset"], scene["solver"]["parallel"])
         integ = Heun(system, self.control)
         legs = [Leg(x, k, len(scene["protocol"]["leg"])) for k, x in enumerate(scene["protocol"]["leg"])]
 
@@ -172,7 +172,8 @@ class Run:
 
         F = system.evaluate(s, gamma, what="initial force")
         solver_desc = system.tau_solver.describe()
-        opts = PETSc.Options().getAll()
+        opts = dict(system.tau_solver.resolved_options())
+        opts.update(PETSc.Options().getAll())
         unused = [o for o in unused_options() if not o.startswith(("spec_", "options_left"))]
         if unused:
             log.warning("WARNING: PETSc options set but not used: %s", ", ".join("-" + u for u in unused))

@@ -11,7 +11,7 @@ import math
 import tomllib
 
 from .models import MODELS, get_model
-from .solvers import PRESETS
+from .solvers import PARALLEL_FACTORS, PRESETS
 from .state import InputError
 
 DEFAULT_SCENE = """\
@@ -74,6 +74,7 @@ SCHEMA = {
     },
     "solver": {
         "preset": (str, "direct", (lambda v: v in PRESETS, f"one of {sorted(PRESETS)}")),
+        "parallel": (str, "redundant", (lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}")),
     },
     "output": {
         "path": (str, "out/run.h5", (lambda v: len(v) > 0, "a non-empty path")),

@@ -34,8 +34,32 @@ class SingularOperator(SolveError):
     """The factorisation of N broke down: N is singular to working precision."""
 
 
-def default_factor_package(comm) -> str:
-    return "cholmod" if comm.getSize() == 1 else "mumps"
+PARALLEL_FACTORS = ("mumps", "redundant")
+
+
+def configure_cholesky(ksp, prefix: str, parallel: str = "mumps") -> None:
+    """Code defaults for a direct solve with ``ksp`` (before its setFromOptions()).
+
+    One rank: preonly + Cholesky with CHOLMOD.  Several ranks: ``parallel = "mumps"``,
+    the distributed MUMPS Cholesky; ``parallel = "redundant"``, the matrix gathered on
+    every rank and factored there by CHOLMOD (PCREDUNDANT) -- much faster than MUMPS for
+    small or narrow-band N (measured: docs/benchmarks.md), at P times the factor memory.
+    Options already in the database (scene or command line) win over these defaults.
+    """
+    if parallel not in PARALLEL_FACTORS:
+        raise ValueError(f"solver.parallel must be one of {PARALLEL_FACTORS}, got {parallel!r}")
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    if ksp.getComm().getSize() == 1 or parallel == "mumps":
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("cholmod" if ksp.getComm().getSize() == 1 else "mumps")
+        return
+    pc.setType(PETSc.PC.Type.REDUNDANT)
+    db = PETSc.Options()
+    for name, value in (("redundant_ksp_type", "preonly"), ("redundant_pc_type", "cholesky"),
+                        ("redundant_pc_factor_mat_solver_type", "cholmod")):
+        if not db.hasName(prefix + name):
+            db.setValue(prefix + name, value)
 
 
 def insert_options(options: dict[str, object], cmdline: set[str] | None = None) -> None:
@@ -62,7 +86,7 @@ class SolveInfo:
 class CholeskySolver:
     """KSP on a fixed Mat with a Cholesky factor; refactors when the Mat's values change."""
 
-    def __init__(self, A: PETSc.Mat, prefix: str, preset: str = "direct"):
+    def __init__(self, A: PETSc.Mat, prefix: str, preset: str = "direct", parallel: str = "mumps"):
         if preset not in PRESETS:
             raise ValueError(f"solver preset must be one of {sorted(PRESETS)}, got {preset!r}")
         self.A = A
@@ -71,10 +95,7 @@ class CholeskySolver:
         comm = A.getComm()
         ksp = PETSc.KSP().create(comm)
         ksp.setOptionsPrefix(prefix)
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc = ksp.getPC()
-        pc.setType(PETSc.PC.Type.CHOLESKY)
-        pc.setFactorSolverType(default_factor_package(comm))
+        configure_cholesky(ksp, prefix, parallel)
         ksp.setOperators(A)
         ksp.setFromOptions()
         self.ksp = ksp
@@ -86,7 +107,21 @@ class CholeskySolver:
 
     @property
     def package(self) -> str:
-        return self.ksp.getPC().getFactorSolverType() or "petsc"
+        pc = self.ksp.getPC()
+        if pc.getType() == PETSc.PC.Type.REDUNDANT:
+            db = PETSc.Options()
+            return "redundant-" + (db.getString(self.prefix + "redundant_pc_factor_mat_solver_type", "") or "petsc")
+        try:
+            return pc.getFactorSolverType() or "petsc"
+        except PETSc.Error:
+            return "none"
+
+    def resolved_options(self) -> dict[str, str]:
+        """The options in effect for this solver (code defaults as overridden)."""
+        pc = self.ksp.getPC()
+        p = self.prefix
+        return {f"{p}ksp_type": self.ksp.getType(), f"{p}pc_type": pc.getType(),
+                f"{p}pc_factor_mat_solver_type": self.package}
 
     def describe(self) -> str:
         pc = self.ksp.getPC()

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .solvers import SolveError, default_factor_package
+from .solvers import SolveError, configure_cholesky
 
 
 class SpectrumError(SolveError):
@@ -23,7 +23,7 @@ class LowSpectrum:
     """k lowest eigenpairs of a symmetric positive (semi-)definite PETSc Mat."""
 
     def __init__(self, A, k: int = 1, prefix: str = "spec_", tol: float = 1e-10,
-                 max_it: int = 500):
+                 max_it: int = 500, parallel: str = "mumps"):
         from petsc4py import PETSc
         from slepc4py import SLEPc
         if k < 1:
@@ -44,17 +44,16 @@ class LowSpectrum:
         eps.setTolerances(tol, max_it)
         st = eps.getST()
         st.setType(SLEPc.ST.Type.SINVERT)
-        ksp = st.getKSP()
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc = ksp.getPC()
-        pc.setType(PETSc.PC.Type.CHOLESKY)
-        pc.setFactorSolverType(default_factor_package(comm))
+        configure_cholesky(st.getKSP(), prefix + "st_", parallel)
         eps.setFromOptions()
         self.eps = eps
 
     def solve(self, vectors: bool = False):
         """Return (eigenvalues ascending, list of eigenvector Vecs or None)."""
         from petsc4py import PETSc
+        # The values of A change between calls (same Mat object): setting the operators
+        # again makes the spectral transformation refactor A.
+        self.eps.setOperators(self.A)
         try:
             self.eps.solve()
         except PETSc.Error as exc:

@@ -52,7 +52,7 @@ class Force:
 class BondedSystem:
     """Operators and solvers for a state with persistent bonds (chain, network)."""
 
-    def __init__(self, comm, state: State, preset: str = "direct"):
+    def __init__(self, comm, state: State, preset: str = "direct", parallel: str = "redundant"):
         if state.bonds is None:
             raise ValueError("BondedSystem needs a state with bonds")
         state.bonds.validate(state.n)
@@ -60,7 +60,8 @@ class BondedSystem:
         self.state = state
         bd = state.bonds
         self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
-        self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset)
+        self.parallel = parallel
+        self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset, parallel)
         # The projection reuses the force factor (same N, no second factorisation).
         self.proj_solver = self.tau_solver
         self._x, self._rhs = self.ops.N.createVecs()

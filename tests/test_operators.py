@@ -30,10 +30,11 @@ def test_S_N_b_against_dense(comm, flow, gamma):
     sysm.destroy()
 
 
+@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
 @pytest.mark.parametrize("flow,gamma", CASES)
-def test_force_solve_and_stress_identity(comm, flow, gamma):
+def test_force_solve_and_stress_identity(comm, flow, gamma, parallel):
     st = random_bonded_state(n=40, extra=8, flow=flow, gamma=gamma, seed=11)
-    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    sysm = BondedSystem(PETSc.COMM_WORLD, st, parallel=parallel)
     F = sysm.evaluate(st.s, gamma)
     S, Nd, b, _, _ = dense_operators(st)
     tau = np.linalg.solve(Nd, -b)
@@ -76,15 +77,16 @@ def test_affine_rate_across_the_lees_edwards_boundary():
         assert y == pytest.approx(0.7)
 
 
+@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
 @pytest.mark.parametrize("flow", ["shear", "extension"])
-def test_omega_min_against_eigvalsh(comm, flow):
+def test_omega_min_against_eigvalsh(comm, flow, parallel):
     from parflow.spectrum import LowSpectrum, omega_from_lambda
     st = random_bonded_state(n=50, extra=10, flow=flow, gamma=0.1, seed=5)
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     sysm.evaluate(st.s, 0.1)
     _, Nd, _, _, _ = dense_operators(st)
     lam = np.linalg.eigvalsh(Nd)
-    spec = LowSpectrum(sysm.ops.N, k=4)
+    spec = LowSpectrum(sysm.ops.N, k=4, parallel=parallel)
     vals, vecs = spec.solve(vectors=True)
     np.testing.assert_allclose(vals, lam[:4], rtol=1e-8)
     assert omega_from_lambda(vals)[0] == pytest.approx(np.sqrt(lam[0]), rel=1e-8)
@@ -97,13 +99,14 @@ def test_omega_min_against_eigvalsh(comm, flow):
     sysm.destroy()
 
 
-def test_singular_N_is_reported(comm):
+@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
+def test_singular_N_is_reported(comm, parallel):
     """Three collinear-free bonds on a triangle plus a duplicate: a state of self-stress."""
     s = np.array([[0.1, 0.1], [0.4, 0.15], [0.2, 0.5]])
     i, j = np.array([0, 1, 2, 0]), np.array([1, 2, 0, 1])
     st = State(s, np.eye(2) * 5, velocity_gradient("shear", 2), 0.0,
                Bonds(i, j, np.zeros((4, 2), int), np.ones(4)))
-    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    sysm = BondedSystem(PETSc.COMM_WORLD, st, parallel=parallel)
     with pytest.raises(SingularOperator):
         sysm.evaluate(s, 0.0)
     sysm.destroy()
@@ -116,3 +119,19 @@ def test_bad_bonds_rejected():
         Bonds([1], [1], [[0, 0]], [1.0]).validate(3)
     with pytest.raises(InputError, match="positive"):
         Bonds([0], [1], [[0, 0]], [-1.0]).validate(3)
+
+
+def test_low_spectrum_follows_the_current_values_of_N(comm):
+    """One LowSpectrum object reused while N's values change (as in a run)."""
+    from parflow.spectrum import LowSpectrum
+    st = random_bonded_state(n=40, extra=8, flow="shear", gamma=0.0, seed=9)
+    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    spec = LowSpectrum(sysm.ops.N, k=2)
+    for gamma in (0.0, 0.5, 1.0):
+        st.gamma = gamma
+        sysm.evaluate(st.s, gamma)
+        _, Nd, _, _, _ = dense_operators(st)
+        vals, _ = spec.solve()
+        np.testing.assert_allclose(vals, np.linalg.eigvalsh(Nd)[:2], rtol=1e-8)
+    spec.destroy()
+    sysm.destroy()

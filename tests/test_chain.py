@@ -1,0 +1,164 @@
+"""The chain: construction, conservation of rod lengths, jamming strain, stepping,
+1 rank vs 2 ranks, restart equals an uninterrupted run."""
+import h5py
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from parflow.integrate import Heun, Jammed, StepControl
+from parflow.models import chain
+from parflow.run import Run, setup_logging
+from parflow.scene import load_scene
+from parflow.system import BondedSystem
+
+
+def chain_scene(path, N=200, eps=0.1, mu=0, legs=None, extra=""):
+    legs = legs or '[[protocol.leg]]\ndirection = "forward"\nV2_above = 1e5\n' \
+                   '[[protocol.leg]]\ndirection = "reverse"\nstrain = 0.004\n'
+    return load_scene(f"""
+seed = 4
+[model]
+name = "chain"
+N = {N}
+epsilon = {eps}
+mu = {mu}
+{legs}
+[output]
+path = "{path}"
+checkpoint_every = 40
+{extra}
+""")
+
+
+def run_scene(scene, comm=None, **kw):
+    comm = comm or PETSc.COMM_WORLD
+    setup_logging(comm, quiet=True)
+    return Run(scene, comm, scene["output"]["path"], quiet=True, **kw).execute()
+
+
+@pytest.mark.parametrize("mu", [0, 2])
+def test_chain_construction(mu):
+    st = chain.build(dict(N=2000, epsilon=0.1, mu=mu), seed=3)
+    h = st.h
+    r = (st.s[st.bonds.j] + st.bonds.shift - st.s[st.bonds.i]) @ h.T
+    np.testing.assert_allclose(np.linalg.norm(r, axis=1), 1.0, atol=1e-12)
+    theta = np.arctan2(r[:, 1], r[:, 0])
+    assert abs(np.sin(theta).sum()) < 1e-9                       # closure
+    assert np.mean(theta ** 2) == pytest.approx(0.01, rel=0.02)  # <theta^2> = eps^2
+    assert st.meta["gamma_c"] == pytest.approx(np.log(2000 / np.cos(theta).sum()), rel=1e-12)
+    assert st.meta["gamma_c"] == pytest.approx(0.1 ** 2 / 2, rel=0.05)
+    if mu == 2:   # spectrum sin^2(pi q): angles anticorrelated, <Delta theta^2> = 3 eps^2 (white: 2)
+        assert np.mean(np.diff(theta) ** 2) > 2.5 * np.mean(theta ** 2)
+
+
+@pytest.mark.serial_only   # thousands of steps; 1 rank vs 2 ranks is tested below
+def test_chain_jams_at_gamma_c_with_exact_rod_lengths(comm):
+    st = chain.build(dict(N=200, epsilon=0.1, mu=0), seed=2)
+    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    integ = Heun(sysm, StepControl())
+    s, g, F, dg = st.s, 0.0, sysm.evaluate(st.s, 0.0), 1e-4
+    worst = 0.0
+    V2 = []
+    with pytest.raises(Jammed):
+        for _ in range(20000):
+            R = integ.step(s, g, F, +1, dg)
+            s, g, F, dg = R.s, R.gamma, R.F, R.next_dgamma
+            worst = max(worst, R.length_error)
+            V2.append(np.sum(F.V_na ** 2) / st.n)
+            # the two stress estimates agree to the accuracy of the solve (~cond(N) eps)
+            assert F.sigma_mismatch < max(1e-9, 10 * F.info.residual)
+            if V2[-1] < 1e8:
+                assert F.sigma_mismatch < 1e-7
+    gc = st.meta["gamma_c"]
+    assert worst < 1e-10                                  # rods stay rigid
+    assert abs(g - gc) < 1e-6 * gc                        # jams at ln(N a0 / Lx(0))
+    assert V2[-1] > 1e10
+    sysm.destroy()
+
+
+@pytest.mark.serial_only
+def test_forward_velocity_exponent(comm):
+    """<V^2> ~ (gamma_c - gamma)^-3 for mu = 0 (local slope over the last decades)."""
+    st = chain.build(dict(N=1000, epsilon=0.1, mu=0), seed=5)
+    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    integ = Heun(sysm, StepControl())
+    s, g, F, dg = st.s, 0.0, sysm.evaluate(st.s, 0.0), 1e-4
+    gs, V2 = [], []
+    while not V2 or V2[-1] < 1e8:
+        R = integ.step(s, g, F, +1, dg)
+        s, g, F, dg = R.s, R.gamma, R.F, R.next_dgamma
+        gs.append(g)
+        V2.append(np.sum(F.V_na ** 2) / st.n)
+    x = st.meta["gamma_c"] - np.array(gs)
+    V2 = np.array(V2)
+    sel = V2 > 1e5
+    slope = np.polyfit(np.log(x[sel]), np.log(V2[sel]), 1)[0]
+    assert slope == pytest.approx(-3.0, abs=0.3)
+    sysm.destroy()
+
+
+def test_run_writes_a_complete_file(comm, mpi_tmp_path):
+    path = str(mpi_tmp_path / "run.h5")
+    scene = chain_scene(path, extra="[observables]\nanalysis_per_decade = 1\nomega_min_every = 25\n")
+    assert run_scene(scene) == "complete"
+    if comm.rank == 0:
+        with h5py.File(path) as f:
+            assert f.attrs["status"] == "complete" and f.attrs["n_ranks"] == comm.size
+            assert "seed = 4" in f.attrs["scene"] and "tau_" in f.attrs["petsc_options"]
+            ts = f["timeseries"]
+            n = ts["step"].shape[0]
+            assert n == f.attrs["steps"] + 1 and all(ts[k].shape == (n,) for k in ts)
+            np.testing.assert_array_equal(ts["step"][:], np.arange(n))
+            assert ts["V2"][-2] < 1e5 <= ts["V2"][:].max()
+            dirs = ts["direction"][:]
+            assert dirs[1] == 1 and dirs[-1] == -1
+            assert np.all(ts["length_error"][:] < 1e-10)
+            assert np.nanmax(ts["sigma_mismatch"][:]) < 1e-6
+            om = ts["omega_min"][:]
+            assert np.isfinite(om[::25]).all() and np.isnan(om[1])
+            assert len(f["analysis"]) >= 4
+            a = f["analysis"][sorted(f["analysis"])[-1]]
+            assert a["C_n"][0] == pytest.approx(1.0) and "l_corr" in a.attrs
+            assert not any(name.endswith(".tmp") for name in f.attrs)
+    comm.barrier()
+
+
+def test_two_ranks_equal_one_rank(comm, mpi_tmp_path):
+    """The same scene on COMM_SELF (CHOLMOD) and on COMM_WORLD (MUMPS when size > 1)."""
+    if comm.size == 1:
+        pytest.skip("compares 1 rank with several: run under mpirun -n 2")
+    p_world = str(mpi_tmp_path / "world.h5")
+    p_self = str(mpi_tmp_path / f"self{comm.rank}.h5")
+    legs = '[[protocol.leg]]\ndirection = "forward"\nV2_above = 1e4\n' \
+           '[[protocol.leg]]\ndirection = "reverse"\nstrain = 0.002\n'
+    run_scene(chain_scene(p_world, legs=legs), PETSc.COMM_WORLD)
+    run_scene(chain_scene(p_self, legs=legs), PETSc.COMM_SELF)
+    comm.barrier()
+    if comm.rank == 0:
+        with h5py.File(p_world) as a, h5py.File(p_self) as b:
+            assert a.attrs["n_ranks"] == comm.size and b.attrs["n_ranks"] == 1
+            for q in ("gamma", "sigma", "V2"):
+                x, y = a["timeseries"][q][:], b["timeseries"][q][:]
+                assert x.shape == y.shape
+                np.testing.assert_allclose(x, y, rtol=1e-10, atol=0)
+    comm.barrier()
+
+
+def test_restart_equals_uninterrupted(comm, mpi_tmp_path):
+    full = str(mpi_tmp_path / "full.h5")
+    part = str(mpi_tmp_path / "part.h5")
+    run_scene(chain_scene(full))
+    assert run_scene(chain_scene(part), max_steps=97) == "budget"
+    comm.barrier()
+    scene = load_scene(chain_scene(part)["text"])
+    scene["output"]["path"] = part
+    assert run_scene(scene, restart=True, max_steps=10**6) == "complete"
+    comm.barrier()
+    if comm.rank == 0:
+        with h5py.File(full) as a, h5py.File(part) as b:
+            assert a["timeseries/step"].shape == b["timeseries/step"].shape
+            for q in ("gamma", "sigma", "V2", "dgamma"):
+                np.testing.assert_array_equal(a["timeseries"][q][:], b["timeseries"][q][:])
+            np.testing.assert_array_equal(a["checkpoint/s"][:], b["checkpoint/s"][:])
+            assert b.attrs["restarted_at_step"] > 0
+    comm.barrier()
