@@ -146,3 +146,52 @@ def test_remove_rattlers_cascade():
     j = np.array([1, 2, 2])
     r, keep = pk.remove_rattlers(3, i, j, 2)
     assert r.all() and not keep.any()
+
+
+def test_morton_order_is_a_local_permutation():
+    rng = np.random.default_rng(1)
+    s = rng.random((1000, 2))
+    o = pk.morton_order(s)
+    assert np.array_equal(np.sort(o), np.arange(1000))
+    step = np.linalg.norm(np.diff(s[o], axis=0), axis=1).mean()
+    assert step < 0.25 * np.linalg.norm(np.diff(s, axis=0), axis=1).mean()
+
+
+def test_tiny_tolerance_stops_at_round_off_floor():
+    p = pk.make_packing(64, 0.88, seed=2, ftol=1e-30, max_iter=200_000)
+    assert p.max_force < pk.force_floor(p.box)
+
+
+@pytest.mark.skipif(not pk.have_numba(), reason="numba not installed (optional kernel)")
+@pytest.mark.parametrize("d", [2, 3])
+def test_numba_kernel_is_bit_identical_to_numpy(d):
+    rng = np.random.default_rng(d)
+    n = 200
+    radii = pk.binary_radii(n)
+    L = pk.box_side(radii, 0.9 if d == 2 else 0.7, d)
+    box = np.full(d, L)
+    X = (rng.random((n, d)) * L).T.copy()
+    out = {}
+    for kernel in ("numpy", "numba"):
+        pl = pk._PairList(radii, box, 0.4, kernel)
+        Xk = pl.build(X.copy())
+        F = np.empty_like(Xk)
+        ov = pl.forces(Xk, F)
+        out[kernel] = (F.copy(), ov.copy())
+    assert np.array_equal(out["numpy"][0], out["numba"][0])
+    assert np.array_equal(out["numpy"][1], out["numba"][1])
+
+
+@pytest.mark.skipif(not pk.have_numba(), reason="numba not installed (optional kernel)")
+def test_numba_packing_equals_numpy_packing(pack):
+    p = pk.make_packing(128, 0.88, seed=3, kernel="numba")
+    q = pk.make_packing(128, 0.88, seed=3, kernel="numpy")
+    assert p.info["kernel"] == "numba" and q.info["kernel"] == "numpy"
+    assert np.array_equal(p.positions, q.positions)
+    assert np.array_equal(p.positions, pack.positions)
+    assert p.iterations == pack.iterations
+
+
+def test_unknown_kernel():
+    with pytest.raises(InputError, match="kernel"):
+        pk.make_packing(64, 0.88, kernel="cuda")
