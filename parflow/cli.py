@@ -63,6 +63,17 @@ def collective(comm, fn, *args):
     return result
 
 
+def _collective_cleanup():
+    """Destroy, on every rank at the same point, the PETSc objects that Python's garbage
+    collector released (petsc4py defers their collective destruction).  Left to
+    interpreter shutdown, the ranks reach it in different states and MPI hangs."""
+    import gc
+
+    from petsc4py import PETSc
+    gc.collect()
+    PETSc.garbage_cleanup()
+
+
 def run_main(prog: str, body) -> int:
     """Call ``body()``; map errors to exit codes without hanging other ranks.
 
@@ -76,14 +87,18 @@ def run_main(prog: str, body) -> int:
     from .state import InputError
     comm = MPI.COMM_WORLD
     try:
-        return body() or 0
+        code = body() or 0
+        _collective_cleanup()
+        return code
     except InputError as exc:
         if comm.rank == 0:
             print(f"{prog}: error: {exc}", file=sys.stderr)
+        _collective_cleanup()
         return 2
     except SolveError as exc:
         if comm.rank == 0:
             print(f"{prog}: solver error: {exc}", file=sys.stderr)
+        _collective_cleanup()
         return 1
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

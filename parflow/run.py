@@ -57,9 +57,9 @@ def versions() -> str:
     v = dict(parflow=__version__, python=sys.version.split()[0], numpy=np.__version__,
              scipy=scipy.__version__, h5py=h5py.__version__,
              petsc=".".join(map(str, PETSc.Sys.getVersion())), mpi=MPI.Get_library_version().split("\n")[0])
-    try:
-        from slepc4py import SLEPc
-        v["slepc"] = ".".join(map(str, SLEPc.Sys.getVersion()))
+    try:   # the package version only: importing slepc4py.SLEPc would initialise SLEPc
+        import slepc4py   # on this rank alone and make the ranks' finalisation diverge
+        v["slepc4py"] = slepc4py.__version__
     except ImportError:
         pass
     return "; ".join(f"{k}={x}" for k, x in v.items())

@@ -1,0 +1,141 @@
+"""Bad input to python -m parflow.shear: one clear line, non-zero exit, no file, no hang."""
+import os
+import shutil
+import subprocess
+import sys
+
+import h5py
+import pytest
+
+pytestmark = pytest.mark.serial_only      # each test launches its own processes
+
+GOOD = """
+seed = 1
+[model]
+name = "chain"
+N = 50
+epsilon = 0.1
+mu = 0
+[[protocol.leg]]
+direction = "forward"
+V2_above = 100.0
+"""
+
+
+def shear(*args, cwd=None, timeout=120, mpi=0):
+    cmd = [sys.executable, "-m", "parflow.shear", *map(str, args)]
+    if mpi:
+        cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=cwd, env=env)
+
+
+def scene_file(tmp_path, text, name="s.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def assert_user_error(res, *fragments):
+    assert res.returncode == 2, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("parflow.shear: error:")]
+    assert len(lines) == 1, res.stderr
+    assert "Traceback" not in res.stderr
+    for frag in fragments:
+        assert frag in lines[0], lines[0]
+
+
+BAD = [
+    ("N = 50\nepsilon = [", "malformed TOML"),
+    (GOOD.replace("epsilon = 0.1", "epsilom = 0.1"), "did you mean 'epsilon'"),
+    (GOOD.replace("[model]", "[modle]"), "did you mean 'model'"),
+    (GOOD.replace("N = 50", "N = 2"), "model.N = 2 is out of range"),
+    (GOOD.replace("N = 50", 'N = "ten"'), "model.N must be of type int"),
+    (GOOD.replace("epsilon = 0.1", "epsilon = 0.0"), "model.epsilon = 0.0 is out of range"),
+    (GOOD.replace("epsilon = 0.1", "epsilon = -0.1"), "model.epsilon"),
+    (GOOD.replace("mu = 0", "mu = 1"), "model.mu = 1 is out of range: must be spectral exponent mu (even"),
+    (GOOD.replace("V2_above = 100.0", "V2_above = -5.0"), "protocol.leg[0].V2_above = -5.0 is out of range"),
+    (GOOD.replace('direction = "forward"', 'direction = "sideways"'), "'forward' or 'reverse'"),
+    (GOOD.replace("V2_above = 100.0", ""), "has no stop rule"),
+    (GOOD.replace('name = "chain"', 'name = "gas"'), "model.name must be one of"),
+    (GOOD + '\n[solver]\npreset = "fastest"\n', "solver.preset"),
+]
+
+
+@pytest.mark.parametrize("text,message", BAD)
+def test_bad_scene(tmp_path, text, message):
+    out = tmp_path / "o.h5"
+    res = shear(scene_file(tmp_path, text), "--output", out)
+    assert_user_error(res, message)
+    assert not out.exists()
+
+
+def test_missing_scene_file(tmp_path):
+    assert_user_error(shear(tmp_path / "nope.toml"), "cannot read scene file")
+
+
+def test_unwritable_output(tmp_path):
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    res = shear(scene_file(tmp_path, GOOD), "--output", blocker / "sub" / "o.h5")
+    assert_user_error(res, "cannot create the output folder")
+
+
+def test_existing_output_needs_overwrite(tmp_path):
+    out = tmp_path / "o.h5"
+    out.write_bytes(b"precious")
+    res = shear(scene_file(tmp_path, GOOD), "--output", out)
+    assert_user_error(res, "exists: pass --overwrite")
+    assert out.read_bytes() == b"precious"
+    res = shear(scene_file(tmp_path, GOOD), "--output", out, "--overwrite", "--quiet")
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out) as f:
+        assert f.attrs["status"] == "complete"
+    assert not (tmp_path / "o.h5.tmp").exists()
+
+
+def test_restart_from_a_file_that_is_not_a_run(tmp_path):
+    txt = tmp_path / "x.h5"
+    txt.write_text("not hdf5")
+    assert_user_error(shear("--restart", txt), "is not an HDF5 file")
+    other = tmp_path / "y.h5"
+    with h5py.File(other, "w") as f:
+        f["a"] = 1
+    assert_user_error(shear("--restart", other), "is not a parflow run file")
+    assert_user_error(shear("--restart", tmp_path / "none.h5"), "does not exist")
+
+
+def test_unused_petsc_option_warns(tmp_path):
+    out = tmp_path / "o.h5"
+    res = shear(scene_file(tmp_path, GOOD + '\n[petsc]\ntau_pc_factor_nonsense = 3\n'),
+                "--output", out, "-tau_ksp_bogus", "1")
+    assert res.returncode == 0, res.stderr
+    assert "not used" in res.stderr and "-tau_pc_factor_nonsense" in res.stderr \
+        and "-tau_ksp_bogus" in res.stderr
+
+
+def test_command_line_petsc_option_wins_over_scene(tmp_path):
+    out = tmp_path / "o.h5"
+    text = GOOD + '\n[petsc]\ntau_pc_factor_mat_solver_type = "petsc"\n'
+    res = shear(scene_file(tmp_path, text), "--output", out, "--quiet",
+                "-tau_pc_factor_mat_solver_type", "cholmod")
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out) as f:
+        assert "cholmod" in f.attrs["solver"]
+
+
+def test_bad_scene_under_mpirun_does_not_hang(tmp_path):
+    out = tmp_path / "o.h5"
+    res = shear(scene_file(tmp_path, GOOD.replace("N = 50", "N = 1")), "--output", out,
+                mpi=2, timeout=60)
+    assert res.returncode != 0
+    assert res.stderr.count("parflow.shear: error: model.N = 1 is out of range") == 1
+    assert not out.exists()
+
+
+def test_two_rank_run_completes(tmp_path):
+    out = tmp_path / "o.h5"
+    res = shear(scene_file(tmp_path, GOOD), "--output", out, mpi=2, timeout=120)
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out) as f:
+        assert f.attrs["n_ranks"] == 2 and f.attrs["status"] == "complete"
