@@ -39,10 +39,19 @@ def cell_at(h0: np.ndarray, E: np.ndarray, gamma: float) -> np.ndarray:
 
 def pair_vectors(s: np.ndarray, h: np.ndarray, i: np.ndarray, j: np.ndarray,
                  shift: np.ndarray) -> np.ndarray:
-    """r_ij = h (s_j + n - s_i), shape (Nb, d)."""
-    ds = s[j] - s[i]
-    ds += shift
-    return ds @ h.T
+    """r_ij = h (s_j + n - s_i), shape (Nb, d).  Computed component by component
+    (1-D gathers are much faster than row gathers of an (N, d) array)."""
+    d = s.shape[1]
+    sT = s.T
+    ds = [sT[c][j] - sT[c][i] + shift[:, c] for c in range(d)]
+    r = np.empty((i.shape[0], d))
+    for a in range(d):
+        acc = h[a, 0] * ds[0]
+        for b in range(1, d):
+            if h[a, b] != 0.0:
+                acc += h[a, b] * ds[b]
+        r[:, a] = acc
+    return r
 
 
 def pair_geometry(s, h, E, i, j, shift):

@@ -51,14 +51,18 @@ class RigidityOperators:
         nloc = hi - lo
         it = PETSc.IntType
         self.i_loc, self.j_loc = i[lo:hi], j[lo:hi]
+        self._i_all, self._j_all = i, j
+        self._n, self._s_fresh = None, False
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
         comp = np.arange(d)
         cols = np.concatenate([d * self.i_loc[:, None] + comp, d * self.j_loc[:, None] + comp], axis=1)
         sign = np.concatenate([-np.ones((nloc, d)), np.ones((nloc, d))], axis=1)
-        self._s_order = np.argsort(cols, axis=1, kind="stable")
-        self._s_sign = np.take_along_axis(sign, self._s_order, axis=1)
-        s_cols = np.take_along_axis(cols, self._s_order, axis=1)
+        order = np.argsort(cols, axis=1, kind="stable")
+        s_cols = np.take_along_axis(cols, order, axis=1)
+        # entry k of row a takes component (order[a,k] mod d) of n_a, with the sign of its end
+        self._s_src = (np.arange(nloc)[:, None] * d + order % d).ravel()
+        self._s_sign = np.take_along_axis(sign, order, axis=1).ravel()
         self._s_indptr = (2 * d * np.arange(nloc + 1)).astype(it)
         self._s_indices = s_cols.ravel().astype(it)
 
@@ -89,18 +93,48 @@ class RigidityOperators:
         self.tau, self.rhs = self.N.createVecs()
         self.force, _ = self.S.createVecs()        # dN-vector (columns of S)
         self._scatter, self._force_all = PETSc.Scatter.toAll(self.force)
+        self._counts = np.array(comm.tompi4py().allgather(nloc))
 
     # ------------------------------------------------------------------------------------
     def update(self, n: np.ndarray) -> None:
-        """Set the values of S and N from the unit vectors n (Nc x d, all pairs)."""
-        n_loc = n[self.lo:self.hi]
-        s_vals = np.concatenate([n_loc, n_loc], axis=1)
-        s_vals = np.take_along_axis(s_vals, self._s_order, axis=1) * self._s_sign
-        self.S.setValuesCSR(self._s_indptr, self._s_indices, s_vals.ravel())
-        self.S.assemble()
-        dots = np.einsum("ad,ad->a", n[self._n_rows], n[self._n_cols])
-        self.N.setValuesCSR(self._n_indptr, self._n_indices, self._n_coef * dots)
+        """Set the values of N from the unit vectors n (Nc x d, all pairs).  S is refreshed
+        lazily (``S_at``): the step loop needs only N and the numpy form of S^T."""
+        self._n = n
+        self._s_fresh = False
+        nT = n.T
+        dots = nT[0][self._n_rows] * nT[0][self._n_cols]
+        for c in range(1, self.d):
+            dots += nT[c][self._n_rows] * nT[c][self._n_cols]
+        dots *= self._n_coef
+        self.N.setValuesCSR(self._n_indptr, self._n_indices, dots)
         self.N.assemble()
+
+    def S_at(self) -> PETSc.Mat:
+        """S as a distributed PETSc Mat with the values of the last ``update``."""
+        if not self._s_fresh:
+            n_loc = self._n[self.lo:self.hi]
+            self.S.setValuesCSR(self._s_indptr, self._s_indices,
+                                n_loc.ravel()[self._s_src] * self._s_sign)
+            self.S.assemble()
+            self._s_fresh = True
+        return self.S
+
+    def ST_numpy(self, tau: np.ndarray) -> np.ndarray:
+        """V = S^T tau (replicated tau and unit vectors): (S^T tau)_i = -sum tau n over bonds
+        leaving i + sum tau n over bonds arriving at j.  (N, d)."""
+        out = np.empty((self.n_nodes, self.d))
+        for c in range(self.d):
+            f = tau * self._n[:, c]
+            out[:, c] = np.bincount(self._j_all, f, self.n_nodes) - \
+                np.bincount(self._i_all, f, self.n_nodes)
+        return out
+
+    @property
+    def norm_bound(self) -> float:
+        """An upper bound of ||N||_inf, valid for any unit vectors: max_a sum_b |c_ab|."""
+        local = float(np.max(np.add.reduceat(np.abs(self._n_coef), self._n_indptr[:-1]))) \
+            if self._n_coef.size else 0.0
+        return self.comm.tompi4py().allreduce(local, op=_mpi_max())
 
     def set_local(self, vec: PETSc.Vec, values: np.ndarray) -> PETSc.Vec:
         """Fill a row-distributed Vec from a replicated array of length Nc."""
@@ -109,11 +143,15 @@ class RigidityOperators:
 
     def gather(self, vec: PETSc.Vec) -> np.ndarray:
         """All entries of a row-distributed Vec on every rank (Nc,)."""
-        return np.concatenate(self.comm.tompi4py().allgather(vec.getArray().copy()))
+        if self.comm.getSize() == 1:
+            return vec.getArray().copy()
+        out = np.empty(self.nc)
+        self.comm.tompi4py().Allgatherv(vec.getArray(readonly=True), [out, self._counts])
+        return out
 
     def ST(self, tau: PETSc.Vec) -> np.ndarray:
-        """V = S^T tau, replicated on every rank as an (N, d) array."""
-        self.S.multTranspose(tau, self.force)
+        """V = S^T tau with the distributed S, replicated on every rank as an (N, d) array."""
+        self.S_at().multTranspose(tau, self.force)
         self._scatter.scatter(self.force, self._force_all, addv=PETSc.InsertMode.INSERT,
                               mode=PETSc.ScatterMode.FORWARD)
         return self._force_all.getArray().reshape(self.n_nodes, self.d).copy()
@@ -121,3 +159,8 @@ class RigidityOperators:
     def destroy(self):
         for obj in (self.S, self.N, self.tau, self.rhs, self.force, self._scatter, self._force_all):
             obj.destroy()
+
+
+def _mpi_max():
+    from mpi4py import MPI
+    return MPI.MAX

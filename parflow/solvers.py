@@ -102,8 +102,8 @@ class CholeskySolver:
         self.r, _ = A.createVecs()
         self.dx, _ = A.createVecs()
         self.info = SolveInfo()
-        self._norm_A = None
-        self._state = None
+        # ||A||_inf (or an upper bound of it) for the backward error; None: computed once
+        self.norm_bound = None
 
     @property
     def package(self) -> str:
@@ -144,24 +144,21 @@ class CholeskySolver:
 
     def solve(self, rhs: PETSc.Vec, x: PETSc.Vec, what: str = "") -> SolveInfo:
         """x = A^-1 rhs with residual check and iterative refinement as the preset asks."""
-        state = self.A.stateGet() if hasattr(self.A, "stateGet") else None
-        if self._norm_A is None or state != self._state:
-            self._norm_A = self.A.norm(PETSc.NormType.INFINITY)
-            self._state = state
+        if self.norm_bound is None:
+            self.norm_bound = self.A.norm(PETSc.NormType.INFINITY)
         reason = self._ksp_solve(rhs, x, what)
-        nb = rhs.norm()
         refinements = 0
         while True:
             self.A.mult(x, self.r)
             self.r.aypx(-1.0, rhs)              # r = rhs - A x
-            nr = self.r.norm()
+            nr, nb, nx = _norms(self.r, rhs, x)
             rel = nr / nb if nb > 0 else nr
             if rel <= self.preset["refine_above"] or refinements >= self.preset["max_refine"]:
                 break
             self._ksp_solve(self.r, self.dx, what)
             x.axpy(1.0, self.dx)
             refinements += 1
-        berr = nr / (self._norm_A * x.norm() + nb) if nb > 0 else 0.0
+        berr = nr / (self.norm_bound * nx + nb) if nb > 0 else 0.0
         if not np.isfinite(berr) or berr > BACKWARD_ERROR_FAIL:
             raise SingularOperator(f"{self.prefix}solve ({what}): backward error {berr:.2e} after "
                                    f"{refinements} refinement(s); N is singular to working precision")
@@ -171,6 +168,15 @@ class CholeskySolver:
     def destroy(self):
         for o in (self.ksp, self.r, self.dx):
             o.destroy()
+
+
+def _norms(*vecs) -> list[float]:
+    """2-norms of several Vecs with one reduction."""
+    local = np.array([float(np.dot(a, a)) for a in (v.getArray(readonly=True) for v in vecs)])
+    comm = vecs[0].getComm()
+    if comm.getSize() > 1:
+        local = comm.tompi4py().allreduce(local)
+    return list(np.sqrt(local))
 
 
 def _reason_name(reason: int) -> str:

@@ -46,7 +46,7 @@ class Force:
     @property
     def ds(self) -> np.ndarray:
         """ds/dgamma = h^-1 V_na (the cell carries the affine part)."""
-        return np.linalg.solve(self.h, self.V_na.T).T
+        return self.V_na @ np.linalg.inv(self.h).T
 
 
 class BondedSystem:
@@ -62,6 +62,7 @@ class BondedSystem:
         self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
         self.parallel = parallel
         self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset, parallel)
+        self.tau_solver.norm_bound = self.ops.norm_bound
         # The projection reuses the force factor (same N, no second factorisation).
         self.proj_solver = self.tau_solver
         self._x, self._rhs = self.ops.N.createVecs()
@@ -90,7 +91,7 @@ class BondedSystem:
         ops.set_local(self._rhs, -b)
         info = self.tau_solver.solve(self._rhs, ops.tau, what)
         tau = ops.gather(ops.tau)
-        V_na = ops.ST(ops.tau)
+        V_na = ops.ST_numpy(tau)
         omega = self.omega
         sigma = float(np.einsum("id,id->", V_na, V_na)) / omega
         sigma_tb = -float(tau @ b) / omega
@@ -105,8 +106,8 @@ class BondedSystem:
         return self.ops.gather(self._x)
 
     def ST(self, x: np.ndarray) -> np.ndarray:
-        self.ops.set_local(self._x, x)
-        return self.ops.ST(self._x)
+        """S^T x for a replicated x (numpy, with the loaded unit vectors)."""
+        return self.ops.ST_numpy(x)
 
     def project(self, s: np.ndarray, gamma: float, tol: float = 1e-13, max_iter: int = 30):
         """Restore rod lengths: quasi-Newton with the loaded factor,
@@ -115,6 +116,9 @@ class BondedSystem:
         st, bd = self.state, self.state.bonds
         h = _cell(st, gamma)
         hinv = np.linalg.inv(h)
+        # lengths computed from r = h (s_j + n - s_i) carry a round-off ~ eps |h| |s|:
+        # the tolerance cannot be tighter than that (a box of 1e4 a0 gives ~1e-12 a0)
+        tol = max(tol, 64 * np.finfo(float).eps * np.abs(h).max() * max(1.0, np.abs(s).max()))
         err0 = None
         for it in range(max_iter + 1):
             r, ell, _, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)

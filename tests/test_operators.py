@@ -21,12 +21,14 @@ def test_S_N_b_against_dense(comm, flow, gamma):
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     F = sysm.evaluate(st.s, gamma)
     S, Nd, b, r, n = dense_operators(st)
-    lo, hi, S_loc = local_rows_dense(sysm.ops.S, S.shape[1])
+    lo, hi, S_loc = local_rows_dense(sysm.ops.S_at(), S.shape[1])
     np.testing.assert_allclose(S_loc, S[lo:hi], atol=1e-14)
     lo, hi, N_loc = local_rows_dense(sysm.ops.N, Nd.shape[1])
     np.testing.assert_allclose(N_loc, Nd[lo:hi], atol=1e-14)
     np.testing.assert_allclose(F.b, b, atol=1e-13)
     np.testing.assert_allclose(F.r, r, atol=1e-13)
+    # V_na from the numpy form of S^T equals the distributed PETSc S^T tau
+    np.testing.assert_allclose(F.V_na, sysm.ops.ST(sysm.ops.tau), atol=1e-13 * np.abs(F.V_na).max())
     sysm.destroy()
 
 
