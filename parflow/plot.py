@@ -362,9 +362,10 @@ def length_cap(run: Run) -> float:
 
 
 def primary_gamma_c(gcs: dict) -> float | None:
-    """gamma_c used by the figures with a single x axis: the fitted one when available (the
-    run jams before ln(N/Lx0) is reached), else the model attribute."""
-    return gcs.get("fit", gcs.get("attr"))
+    """gamma_c used by the figures with a single x axis: the exact ln(N a0 / Lx(0)) (the
+    chain is straight, hence jammed, exactly there), else the fitted one.  The fitted value
+    is a diagnostic of how far the run is from the asymptotic regime, not a better gamma_c."""
+    return gcs.get("attr", gcs.get("fit"))
 
 
 def reverse_window(x, V2):

@@ -118,7 +118,7 @@ class BondedSystem:
         hinv = np.linalg.inv(h)
         # lengths computed from r = h (s_j + n - s_i) carry a round-off ~ eps |h| |s|:
         # the tolerance cannot be tighter than that (a box of 1e4 a0 gives ~1e-12 a0)
-        tol = max(tol, 64 * np.finfo(float).eps * np.abs(h).max() * max(1.0, np.abs(s).max()))
+        tol = max(tol, 8 * np.finfo(float).eps * np.abs(h).max() * max(1.0, np.abs(s).max()))
         err0 = None
         for it in range(max_iter + 1):
             r, ell, _, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)

@@ -20,7 +20,7 @@ N = 64
 
 
 def _synthetic(path, *, analysis=True, reverse=True, omega=True, model="chain",
-               gamma_c_attr=5.1e-3, noise=0.0, seed=0):
+               gamma_c_attr=GC, noise=0.0, seed=0):
     """A chain-like run: forward V2 = A x^-3, dtheta2 = B x^3, thetadot2 = C/x with
     x = GC - gamma (4 decades), then reverse V2 = a / (gamma_turn + x0 - gamma)."""
     rng = np.random.default_rng(seed)
@@ -123,7 +123,7 @@ def test_chain_fits_on_synthetic_run(tmp_path):
     src = tmp_path / "run.h5"
     truth = _synthetic(src, noise=0.02)
     fits = plot.chain_fits(plot.load_run(str(src)))
-    assert fits["gamma_c"]["attr"] == pytest.approx(5.1e-3)
+    assert fits["gamma_c"]["attr"] == pytest.approx(GC)
     assert fits["gamma_c"]["fit"] == pytest.approx(GC, rel=1e-3)
     fw = fits["forward"]["fit"]
     assert abs(fw["V2"][0] + 3) < 0.05
