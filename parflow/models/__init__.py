@@ -3,7 +3,7 @@ FLOW, build(params, seed) -> State, observables(state, F) -> dict and
 analyses(system, state, F) -> dict(arrays=..., scalars=...)."""
 from importlib import import_module
 
-MODELS = ("chain",)
+MODELS = ("chain", "network")
 
 
 def get_model(name: str):

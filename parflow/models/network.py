@@ -1,0 +1,490 @@
+"""Floppy rod networks in simple shear (paper §III, Figs. 3-5 and 8; DESIGN §6).
+
+The network is built by the WLKM protocol (``network_build``): a jammed soft-disc packing
+of ``N`` particles, a rod on every contact, diluted to coordination ``z < 2d``.  It is then
+sheared with Lees-Edwards boundaries: the cell h(gamma) = [[Lx, gamma Ly], [0, Ly]] follows
+the flow V_f = (y, 0) (the core does this: dh/dgamma = E h); bonds carry their image shifts,
+r_a = h (s_j + n_a - s_i), and the affine rate of a rod is b_a = n_a . E r_a = x_a y_a / r_a.
+
+Analyses (at the instants the scene asks for, with the factor of N loaded at that instant):
+
+* point response: for a handful of rods beta, N f = |beta> and V = S^T f (the velocities
+  when rod beta alone is made to extend at unit rate).  |V_i| and |f_a| are binned by the
+  minimum-image distance from the midpoint of beta and averaged over the rods; the V profile
+  is fitted by A exp(-r/l_c) + B exp(-r/l_r) (l_c: the initial decay, l_r: the slow tail).
+  <V|V> = f_beta (= f^T N f).
+* velocity correlation C(r) = <V_i . V_j> / <V^2> of V_na, pairs binned by minimum-image
+  distance up to r_max, in row blocks (memory O(block), time O(N^2)).
+* spectrum of N: omega = sqrt(lambda(N)); all of it (dense eigvalsh, Nc <= DENSE_MAX) or
+  the lowest ``n_low`` (SLEPc shift-and-invert).
+
+Distances: reduced displacements in a *remapped* cell h_r = h U (U unimodular, tilt
+reduced to |h_r[0,1]| <= Lx/2, the Lees-Edwards remapping), minus rint, times h_r.  For
+r <= half the smallest height of the cell (the default r_max) this is the true minimum image.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..cell import velocity_gradient
+from ..state import Bonds, InputError, State
+from . import network_build as _nb
+
+FLOW = "shear"
+Z_RANGE = (3.5, 3.98)
+DENSE_MAX = 10_000
+SPECTRA = ("none", "dense", "low", "auto")
+
+PARAMS = {
+    # name: (type, default, check, description)
+    "N": (int, 4096, lambda v: v >= _nb.MIN_NODES,
+          f"number of particles of the packing (>= {_nb.MIN_NODES}); rattlers are dropped"),
+    "d": (int, 2, lambda v: v == 2, "2 (3D networks come later)"),
+    "z": (float, 3.8, lambda v: Z_RANGE[0] <= v <= Z_RANGE[1],
+          f"in [{Z_RANGE[0]}, {Z_RANGE[1]}]: a floppy network needs z < 2d = 4, and the WLKM "
+          f"dilution (no node below d + 1 = 3 rods) cannot reliably go below ~3.5"),
+    "phi": (float, _nb.DEFAULT_PHI, lambda v: 0.0 < v < 1.0,
+            "packing fraction of the seed packing, in (0, 1) (0.86-0.90 gives z0 ~ 4.4-5)"),
+    "pressure": (float, 0.0, lambda v: v >= 0.0,
+                 ">= 0: target pressure of the packing (0: use phi instead)"),
+    "network_file": (str, "", None,
+                     "network HDF5 file (network_build.save_network) to load; '' generates one"),
+    "response_rods": (int, 8, lambda v: v >= 1, "number of rods beta for the point response (>= 1)"),
+    "response_dr": (float, 0.5, lambda v: v > 0, "bin width of the point-response profiles (> 0)"),
+    "corr_dr": (float, 0.5, lambda v: v > 0, "bin width of C(r) (> 0)"),
+    "corr_rmax": (float, 0.0, lambda v: v >= 0,
+                  ">= 0: largest distance of C(r) (0: half the smallest height of the cell)"),
+    "correlation": (bool, True, lambda v: True, "true/false: compute C(r) at analysis instants"),
+    "spectrum": (str, "none", lambda v: v in SPECTRA,
+                 f"one of {list(SPECTRA)}: spectrum of N at analysis instants (dense: "
+                 f"all of it, Nc <= {DENSE_MAX}; low: the n_low lowest; auto: dense if possible)"),
+    "n_low": (int, 10, lambda v: v >= 1, "number of lowest eigenvalues for spectrum = 'low' (>= 1)"),
+    "dos_bins": (int, 60, lambda v: v >= 2, "number of log-spaced bins of D(omega) (>= 2)"),
+}
+# the analysis settings travel with the state (State.meta), so a restart keeps them
+_ANALYSIS_KEYS = ("response_rods", "response_dr", "corr_dr", "corr_rmax", "correlation",
+                  "spectrum", "n_low", "dos_bins")
+
+
+# --------------------------------------------------------------------------- building
+
+def check_z(z: float, d: int = 2) -> None:
+    if not (isinstance(z, (int, float)) and math.isfinite(z)):
+        raise InputError(f"model.z must be a finite number, got {z!r}")
+    if z >= 2 * d:
+        raise InputError(f"model.z = {z:g}: a floppy network needs z < 2d = {2 * d} "
+                         f"(z = 2d is isostatic); use z in [{Z_RANGE[0]}, {Z_RANGE[1]}]")
+    if z < Z_RANGE[0] or z > Z_RANGE[1]:
+        raise InputError(f"model.z = {z:g} is outside [{Z_RANGE[0]}, {Z_RANGE[1]}]: too close "
+                         f"to 2d = {2 * d} (dz < 0.02) or below what the WLKM dilution reaches "
+                         f"without floppy appendages")
+
+
+def _defaults(params: dict) -> dict:
+    p = {k: v[1] for k, v in PARAMS.items()}
+    p.update(params)
+    return p
+
+
+def make(params: dict, seed: int) -> "_nb.Network":
+    """The WLKM network the scene describes (generated, not loaded)."""
+    p = _defaults(params)
+    check_z(p["z"], p["d"])
+    if p["pressure"] > 0:
+        pk = _nb._pk.make_packing(p["N"], None, d=p["d"], seed=seed, pressure=p["pressure"])
+    else:
+        pk = _nb._pk.make_packing(p["N"], p["phi"], d=p["d"], seed=seed)
+    return _nb.network_from_packing(pk, p["z"], seed=seed)
+
+
+def check_matches(net: "_nb.Network", params: dict, seed: int, path: str = "") -> None:
+    """InputError listing every way a loaded network differs from the scene."""
+    p = _defaults(params)
+    bad = []
+    pinfo = net.info.get("packing", {}) if isinstance(net.info, dict) else {}
+    if net.d != p["d"]:
+        bad.append(f"d = {net.d} (scene: {p['d']})")
+    n_pk = pinfo.get("n")
+    if n_pk is not None and int(n_pk) != p["N"]:
+        bad.append(f"N = {int(n_pk)} particles (scene: model.N = {p['N']})")
+    if abs(net.z - p["z"]) > 1.0 / net.n + 1e-12:
+        bad.append(f"z = {net.z:.6g} (scene: model.z = {p['z']:g})")
+    if int(net.seed) != int(seed):
+        bad.append(f"seed = {net.seed} (scene: seed = {seed})")
+    if p["pressure"] > 0:
+        pp = pinfo.get("pressure")
+        if pp is not None and abs(pp / p["pressure"] - 1) > 0.05:
+            bad.append(f"packing pressure = {pp:.4g} (scene: model.pressure = {p['pressure']:g})")
+    else:
+        ph = pinfo.get("phi")
+        if ph is not None and abs(ph - p["phi"]) > 1e-9:
+            bad.append(f"packing phi = {ph:.6g} (scene: model.phi = {p['phi']:g})")
+    if bad:
+        raise InputError(f"model.network_file {path!r} does not match the scene: "
+                         + "; ".join(bad) + ". Fix the scene, or set network_file = '' to "
+                         "generate the network")
+
+
+def build(params: dict, seed: int) -> State:
+    p = _defaults(params)
+    check_z(p["z"], p["d"])
+    path = p["network_file"]
+    if path:
+        net = _nb.load_network(path)
+        check_matches(net, p, seed, path)
+    else:
+        net = make(p, seed)
+    return state_from_network(net, p, path)
+
+
+def state_from_network(net: "_nb.Network", params: dict | None = None, path: str = "") -> State:
+    p = _defaults(params or {})
+    d = net.d
+    bd = net.bonds
+    bonds = Bonds(bd.i.copy(), bd.j.copy(), bd.shift.copy(), bd.l0.copy())
+    state = State(np.array(net.s, dtype=float), np.array(net.h0, dtype=float),
+                  velocity_gradient(FLOW, d), 0.0, bonds)
+    info = net.info if isinstance(net.info, dict) else {}
+    pinfo = info.get("packing", {})
+    meta = dict(model="network", z=float(net.z), z_target=float(p["z"]), dz=2.0 * d - net.z,
+                n_nodes=net.n, n_bonds=len(bd), z0=float(net.z0), network_seed=int(net.seed),
+                network_file=path, fabric_ratio=float(info.get("fabric_ratio", np.nan)),
+                min_degree=int(info.get("min_degree", -1)))
+    for k in ("n", "phi", "pressure", "z", "n_rattlers"):
+        if k in pinfo:
+            meta[f"packing_{k}"] = float(pinfo[k]) if k != "n" else int(pinfo[k])
+    if isinstance(info.get("self_stress"), dict):
+        meta["self_stresses"] = int(info["self_stress"]["self_stresses"])
+    meta.update({k: (int(v) if isinstance(v, bool) else v)
+                 for k, v in p.items() if k in _ANALYSIS_KEYS})
+    state.meta.update(meta)
+    return state
+
+
+def observables(state: State, F) -> dict:
+    """z (fixed), and the fraction of rods in tension (tau < 0)."""
+    return dict(z=2.0 * len(state.bonds) / state.n,
+                tension_fraction=float(np.count_nonzero(F.tau < 0)) / max(F.tau.size, 1))
+
+
+# --------------------------------------------------------------------------- geometry
+
+def remapped_cell(h: np.ndarray) -> np.ndarray:
+    """h_r = h U with U unimodular: each column size-reduced against the earlier ones
+    (upper-triangular h: |h_r[m, k]| <= h[m, m] / 2 for m < k).  For simple shear this is the
+    Lees-Edwards remapping of the tilt into [-Lx/2, Lx/2]."""
+    hr = np.array(h, dtype=float)
+    d = hr.shape[0]
+    for k in range(1, d):                       # loops over dimensions only
+        for m in range(k - 1, -1, -1):
+            hr[:, k] -= np.rint(hr[m, k] / hr[m, m]) * hr[:, m]
+    return hr
+
+
+def min_image_radius(h: np.ndarray) -> float:
+    """Half the smallest distance between opposite faces of the (remapped) cell: below it,
+    the reduced rint convention gives the true minimum image."""
+    hr = remapped_cell(h)
+    vol = abs(np.linalg.det(hr))
+    inv = np.linalg.inv(hr)
+    # height along column k = vol / |face normal| = 1 / |row k of h^-1|
+    return 0.5 * float(np.min(1.0 / np.linalg.norm(inv, axis=1))) if vol > 0 else 0.0
+
+
+class MinImage:
+    """Minimum-image displacements in a (sheared) periodic cell h.
+
+    Positions are given as reduced coordinates of h (unwrapped, any integers); they are
+    expressed in the remapped cell h_r, displacements are reduced by rint there, and
+    mapped back to real space with h_r."""
+
+    def __init__(self, h: np.ndarray):
+        self.h = np.asarray(h, dtype=float)
+        self.hr = remapped_cell(self.h)
+        self.to_r = np.linalg.solve(self.hr, self.h)       # s_r = h_r^-1 h s
+        self.rmax = min_image_radius(self.h)
+
+    def reduced(self, s: np.ndarray) -> np.ndarray:
+        """(n, d) reduced coordinates in h_r, wrapped into [0, 1)."""
+        sr = s @ self.to_r.T
+        return sr - np.floor(sr)
+
+    def vectors(self, dsr: np.ndarray) -> np.ndarray:
+        """Real minimum-image vectors from reduced (h_r) displacements (..., d)."""
+        dsr = dsr - np.rint(dsr)
+        return dsr @ self.hr.T
+
+
+def bond_midpoints(s: np.ndarray, bonds: Bonds) -> np.ndarray:
+    """Reduced coordinates of rod midpoints: s_i + (s_j + n - s_i) / 2."""
+    return s[bonds.i] + 0.5 * (s[bonds.j] + bonds.shift - s[bonds.i])
+
+
+def spread_points(k: int, d: int) -> np.ndarray:
+    """k points spread over [0, 1)^d (a Kronecker/Fibonacci lattice), deterministic."""
+    alpha = np.sqrt(np.array([2.0, 3.0, 5.0, 7.0][:d - 1]))
+    first = (np.arange(k) + 0.5) / k
+    rest = np.mod(np.outer(np.arange(k) + 0.5, alpha), 1.0)
+    return np.column_stack([first, rest])
+
+
+def pick_rods(s: np.ndarray, h: np.ndarray, bonds: Bonds, k: int) -> np.ndarray:
+    """k distinct rods whose midpoints are nearest to k points spread over the cell."""
+    mi = MinImage(h)
+    mid = mi.reduced(bond_midpoints(s, bonds))
+    targets = spread_points(k, s.shape[1])
+    out = []
+    for t in targets:                           # a handful of rods, vectorised over bonds
+        dist = np.einsum("ad,ad->a", *(2 * [mi.vectors(mid - t)]))
+        if out:
+            dist[np.array(out)] = np.inf
+        out.append(int(np.argmin(dist)))
+    return np.array(out, dtype=np.int64)
+
+
+def _distances(mi: MinImage, pts: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    v = mi.vectors(pts - centre)
+    return np.sqrt(np.einsum("ad,ad->a", v, v))
+
+
+# --------------------------------------------------------------------------- analyses
+
+def point_response(system, s: np.ndarray, h: np.ndarray, bonds: Bonds, rods: np.ndarray,
+                   dr: float, rmax: float | None = None) -> dict:
+    """Average point response of ``rods``: N f = |beta>, V = S^T f (loaded factor of N).
+
+    Returns dict(r, V_mean, V_rms, f_mean, counts_V, counts_f, VV) with profiles binned
+    by minimum-image distance from the rod's midpoint, averaged over rods (all nodes or
+    rods in a bin of all rods pooled), and VV the per-rod <V|V> = |V|^2."""
+    mi = MinImage(h)
+    rmax = mi.rmax if rmax is None else min(rmax, mi.rmax)
+    nbins = max(1, int(np.ceil(rmax / dr)))
+    sr = mi.reduced(s)
+    mid = mi.reduced(bond_midpoints(s, bonds))
+    nc = len(bonds)
+    acc = np.zeros((5, nbins))                 # sum|V|, sum|V|^2, n_V, sum|f|, n_f
+    VV, fb = [], []
+    for beta in rods:                          # a handful of solves with the loaded factor
+        e = np.zeros(nc)
+        e[beta] = 1.0
+        f = system.solve_N(e, what="point response")
+        V = system.ST(f)
+        rn = _distances(mi, sr, mid[beta])
+        rb = _distances(mi, mid, mid[beta])
+        kn = (rn / dr).astype(np.int64)
+        kb = (rb / dr).astype(np.int64)
+        okn, okb = kn < nbins, kb < nbins
+        absV = np.sqrt(np.einsum("id,id->i", V, V))
+        acc[0] += np.bincount(kn[okn], absV[okn], nbins)
+        acc[1] += np.bincount(kn[okn], absV[okn] ** 2, nbins)
+        acc[2] += np.bincount(kn[okn], None, nbins)
+        acc[3] += np.bincount(kb[okb], np.abs(f[okb]), nbins)
+        acc[4] += np.bincount(kb[okb], None, nbins)
+        VV.append(float(np.einsum("id,id->", V, V)))
+        fb.append(float(f[beta]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = dict(r=(np.arange(nbins) + 0.5) * dr, V_mean=acc[0] / acc[2],
+                   V_rms=np.sqrt(acc[1] / acc[2]), f_mean=acc[3] / acc[4],
+                   counts_V=acc[2], counts_f=acc[4], VV=np.array(VV), f_beta=np.array(fb))
+    return out
+
+
+def fit_two_exponentials(r: np.ndarray, P: np.ndarray, counts: np.ndarray | None = None):
+    """Fit log P(r) = log(A e^{-r/l_c} + B e^{-r/l_r}), l_c < l_r, over the bins with data.
+
+    Returns dict(l_c, l_c_err, l_r, l_r_err, A, B, rms) (NaN where the fit fails); the
+    errors are one standard deviation from the covariance of the least-squares fit (scaled
+    by the residual), i.e. they measure how well two exponentials describe the profile."""
+    from scipy.optimize import curve_fit
+    nan = dict(l_c=np.nan, l_c_err=np.nan, l_r=np.nan, l_r_err=np.nan, A=np.nan, B=np.nan,
+               rms=np.nan)
+    ok = np.isfinite(P) & (P > 0)
+    if counts is not None:
+        ok &= counts > 0
+    r, y = r[ok], np.log(P[ok])
+    if r.size < 6:
+        return nan
+    # starting values: the initial slope (first third) and the tail slope (last half)
+    n3 = max(3, r.size // 3)
+    s1 = np.polyfit(r[:n3], y[:n3], 1)[0]
+    s2, c2 = np.polyfit(r[r.size // 2:], y[r.size // 2:], 1)
+    lc0 = -1.0 / s1 if s1 < 0 else 1.0
+    lr0 = -1.0 / s2 if s2 < 0 else 10.0 * (r[-1] - r[0])
+    lr0 = max(lr0, 2 * lc0)
+
+    def model(x, la, lc, lb, dl):
+        # l_r = l_c + dl > l_c;  amplitudes as logs
+        return np.logaddexp(la - x / lc, lb - x / (lc + dl))
+
+    p0 = [y[0] + r[0] / lc0, lc0, c2, lr0 - lc0]
+    try:
+        popt, pcov = curve_fit(model, r, y, p0=p0, maxfev=20000,
+                               bounds=([-np.inf, 1e-3, -np.inf, 1e-6], [np.inf, np.inf, np.inf, np.inf]))
+    except (RuntimeError, ValueError):
+        return nan
+    la, lc, lb, dl = popt
+    err = np.sqrt(np.clip(np.diag(pcov), 0, None)) if np.all(np.isfinite(pcov)) else np.full(4, np.nan)
+    lr_err = float(np.sqrt(max(pcov[1, 1] + pcov[3, 3] + 2 * pcov[1, 3], 0.0))) \
+        if np.all(np.isfinite(pcov)) else np.nan
+    rms = float(np.sqrt(np.mean((model(r, *popt) - y) ** 2)))
+    return dict(l_c=float(lc), l_c_err=float(err[1]), l_r=float(lc + dl), l_r_err=lr_err,
+                A=float(np.exp(la)), B=float(np.exp(lb)), rms=rms)
+
+
+def velocity_correlation(s: np.ndarray, h: np.ndarray, V: np.ndarray, dr: float,
+                         rmax: float | None = None, block: int = 2_000_000) -> dict:
+    """C(r) = <V_i . V_j>_{|r_ij| in bin} / <V^2> over pairs i < j (minimum image), binned
+    by ``dr`` up to ``rmax`` (default and upper bound: half the smallest cell height).
+
+    Row blocks of about ``block`` pairs: memory O(block), time O(N^2).  Returns dict(r,
+    C, counts, sum_VV) (C is NaN in empty bins)."""
+    mi = MinImage(h)
+    rmax = mi.rmax if rmax is None or rmax <= 0 else min(rmax, mi.rmax)
+    nbins = max(1, int(np.ceil(rmax / dr)))
+    n, d = s.shape
+    sr = mi.reduced(s)
+    V = np.asarray(V, dtype=float)
+    V2 = float(np.einsum("id,id->", V, V)) / n
+    srT, VT = np.ascontiguousarray(sr.T), np.ascontiguousarray(V.T)
+    sums = np.zeros(nbins)
+    counts = np.zeros(nbins)
+    rows = max(1, block // max(n, 1))
+    for a in range(0, n, rows):                # row blocks; pairs (i, j > i)
+        b = min(n, a + rows)
+        cols = slice(a + 1, n)
+        if a + 1 >= n:
+            break
+        dsr = [srT[c][cols][None, :] - srT[c][a:b, None] for c in range(d)]
+        for c in range(d):
+            dsr[c] -= np.rint(dsr[c])
+        r2 = np.zeros_like(dsr[0])
+        for x in range(d):
+            comp = mi.hr[x, 0] * dsr[0]
+            for c in range(1, d):
+                if mi.hr[x, c] != 0.0:
+                    comp += mi.hr[x, c] * dsr[c]
+            r2 += comp * comp
+        dots = VT[0][a:b, None] * VT[0][cols][None, :]
+        for c in range(1, d):
+            dots += VT[c][a:b, None] * VT[c][cols][None, :]
+        # keep j > i only: in the block, column k (j = a + 1 + k) with row q (i = a + q)
+        jj = np.arange(a + 1, n)[None, :]
+        ii = np.arange(a, b)[:, None]
+        k = np.sqrt(r2) / dr
+        keep = (jj > ii) & (k < nbins)
+        kk = k[keep].astype(np.int64)
+        sums += np.bincount(kk, dots[keep], nbins)
+        counts += np.bincount(kk, None, nbins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        C = sums / counts / V2 if V2 > 0 else np.full(nbins, np.nan)
+    return dict(r=(np.arange(nbins) + 0.5) * dr, C=C, counts=counts, sum_VV=sums, V2=V2)
+
+
+def crossing_length(r: np.ndarray, C: np.ndarray, level: float = math.exp(-1)) -> float:
+    """First r where C (starting at C(0) = 1) falls below ``level`` (linear interpolation
+    from the previous non-empty bin, or from (0, 1) if it is the first)."""
+    ok = np.isfinite(C)
+    rr = np.concatenate([[0.0], r[ok]])
+    cc = np.concatenate([[1.0], C[ok]])
+    below = np.nonzero(cc < level)[0]
+    if below.size == 0:
+        return float("nan")
+    k = below[0]
+    return float(rr[k - 1] + (cc[k - 1] - level) / (cc[k - 1] - cc[k]) * (rr[k] - rr[k - 1]))
+
+
+def dense_N(n_unit: np.ndarray, bonds: Bonds, n_nodes: int) -> np.ndarray:
+    """Dense N = S S^T from the unit vectors (sparse S, vectorised)."""
+    import scipy.sparse as sp
+    nc, d = n_unit.shape
+    rows = np.repeat(np.arange(nc), 2 * d)
+    comp = np.arange(d)
+    cols = np.concatenate([d * bonds.i[:, None] + comp, d * bonds.j[:, None] + comp], axis=1).ravel()
+    vals = np.concatenate([-n_unit, n_unit], axis=1).ravel()
+    S = sp.csr_matrix((vals, (rows, cols)), shape=(nc, d * n_nodes))
+    return (S @ S.T).toarray()
+
+
+def dense_spectrum(n_unit: np.ndarray, bonds: Bonds, n_nodes: int) -> np.ndarray:
+    """All omega = sqrt(lambda(N)), ascending (numpy eigvalsh)."""
+    lam = np.linalg.eigvalsh(dense_N(n_unit, bonds, n_nodes))
+    return np.sqrt(np.clip(lam, 0.0, None))
+
+
+def density_of_states(omega: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """D(omega) normalised to 1 over log-spaced bins from the smallest positive omega to the
+    largest: returns (bin edges, D)."""
+    pos = omega[omega > 0]
+    if pos.size < 2:
+        return np.zeros(bins + 1), np.zeros(bins)
+    edges = np.geomspace(pos[0] * (1 - 1e-12), pos[-1] * (1 + 1e-12), bins + 1)
+    hist, _ = np.histogram(omega, edges)
+    return edges, hist / (omega.size * np.diff(edges))
+
+
+def _bcast(system, value):
+    comm = system.comm
+    if comm.getSize() == 1:
+        return value
+    return comm.tompi4py().bcast(value, root=0)
+
+
+def analyses(system, state: State, F) -> dict:
+    """Point response, C(r) and the spectrum of N at the current configuration.
+
+    ``state`` must carry the current positions (state.s at F.gamma): checked against F.r."""
+    meta = {k: state.meta.get(k, PARAMS[k][1]) for k in _ANALYSIS_KEYS}
+    bd, s, h = state.bonds, state.s, F.h
+    from ..cell import pair_vectors
+    mism = float(np.max(np.abs(pair_vectors(s, h, bd.i, bd.j, bd.shift) - F.r)))
+    if not mism <= 1e-8 * max(1.0, float(np.abs(h).max())):
+        raise RuntimeError(f"network.analyses: the positions given do not match the force "
+                           f"evaluation (pair vectors differ by {mism:.3g}): the driver must pass "
+                           f"the current state")
+    # the factor in the solver may belong to a rejected trial step (e.g. after Jammed):
+    # reload N at this configuration (one numeric refactorisation at the next solve)
+    system.load(F.n)
+    arrays, scalars = {}, {}
+    # (a) point response
+    rods = pick_rods(s, h, bd, int(meta["response_rods"]))
+    pr = point_response(system, s, h, bd, rods, float(meta["response_dr"]))
+    fit = fit_two_exponentials(pr["r"], pr["V_mean"], pr["counts_V"])
+    fit_f = fit_two_exponentials(pr["r"], pr["f_mean"], pr["counts_f"])
+    arrays.update(resp_r=pr["r"], resp_V=pr["V_mean"], resp_V_rms=pr["V_rms"],
+                  resp_f=pr["f_mean"], resp_counts_V=pr["counts_V"], resp_counts_f=pr["counts_f"],
+                  resp_rods=rods, resp_VV=pr["VV"])
+    scalars.update({f"resp_{k}": v for k, v in fit.items()})
+    scalars.update({f"resp_f_{k}": v for k, v in fit_f.items()})
+    scalars["VV"] = float(np.mean(pr["VV"]))
+    scalars["VV_err"] = float(np.std(pr["VV"]) / np.sqrt(len(pr["VV"])))
+    # (b) velocity correlation of V_na
+    if meta["correlation"]:
+        cr = velocity_correlation(s, h, F.V_na, float(meta["corr_dr"]), float(meta["corr_rmax"]))
+        arrays.update(corr_r=cr["r"], corr_C=cr["C"], corr_counts=cr["counts"])
+        scalars["corr_length"] = crossing_length(cr["r"], cr["C"])
+    # (c) spectrum
+    mode = meta["spectrum"]
+    if mode == "auto":
+        mode = "dense" if len(bd) <= DENSE_MAX else "low"
+    if mode == "dense":
+        if len(bd) > DENSE_MAX:
+            raise InputError(f"model.spectrum = 'dense' needs Nc <= {DENSE_MAX} (Nc = {len(bd)}): "
+                             f"use 'low' or 'auto'")
+        omega = dense_spectrum(F.n, bd, state.n) if system.comm.getRank() == 0 else None
+        omega = _bcast(system, omega)
+        edges, D = density_of_states(omega, int(meta["dos_bins"]))
+        arrays.update(omega=omega, dos_edges=edges, dos=D)
+        scalars["omega_min_dense"] = float(omega[0])
+    elif mode == "low":
+        from ..spectrum import LowSpectrum, omega_from_lambda
+        spec = LowSpectrum(system.ops.N, k=int(meta["n_low"]), parallel=system.parallel)
+        try:
+            lam, _ = spec.solve()
+        finally:
+            spec.destroy()
+        omega = omega_from_lambda(lam)
+        arrays.update(omega_low=omega)
+        scalars["omega_min_low"] = float(omega[0])
+    return dict(arrays=arrays, scalars=scalars)
