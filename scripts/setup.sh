@@ -20,7 +20,7 @@ STAMP="$VENV/.parflow-setup-stamp"
 APT_PACKAGES=(
     python3-petsc4py python3-slepc4py python3-mpi4py python3-h5py-mpi
     python3-numpy python3-scipy python3-matplotlib python3-pytest
-    python3-venv python3-setuptools python3-wheel
+    python3-venv python3-setuptools python3-wheel python3-numba
     openmpi-bin make
 )
 
@@ -39,7 +39,7 @@ system_ready() {
     # H5PY_ALWAYS_USE_MPI makes Debian's h5py load its MPI build outside mpirun.
     H5PY_ALWAYS_USE_MPI=1 "$SYS_PY" - >/dev/null 2>&1 <<'EOF'
 import ensurepip, venv, setuptools, wheel
-import numpy, scipy, matplotlib, pytest, mpi4py
+import numpy, scipy, matplotlib, pytest, mpi4py, numba
 import petsc4py, slepc4py
 import h5py
 assert h5py.get_config().mpi, "h5py without MPI"
