@@ -169,7 +169,7 @@ def _model(table: dict) -> dict:
     model = get_model(name)
     schema = {"name": (str, name, None)}
     for key, (typ, default, check, desc) in model.PARAMS.items():
-        schema[key] = (typ, default, (check, desc))
+        schema[key] = (typ, default, None if check is None else (check, desc))
     return _fill(table, schema, "model.")
 
 
