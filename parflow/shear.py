@@ -26,6 +26,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--restart", metavar="FILE", help="continue the run saved in FILE from its checkpoint")
     p.add_argument("--max-steps", type=int, help="override protocol.max_steps (e.g. to extend a restarted run)")
+    p.add_argument("--no-plots", action="store_true", help="do not draw the figures at the end")
     p.add_argument("--print-scene", action="store_true", help="print the default scene and exit")
     return p
 
@@ -92,7 +93,23 @@ def _run(args, petsc_args, PETSc) -> int:
     insert_options(scene["petsc"], cmdline_option_names(petsc_args))
     status = Run(scene, comm, path, quiet=args.quiet, cmdline_options=cmdline_option_names(petsc_args),
                  restart=bool(args.restart), max_steps=args.max_steps).execute()
+    if not args.no_plots and comm.getRank() == 0:
+        _plots(path, args.quiet)
     return 0 if status in ("complete", "jammed", "budget") else 1
+
+
+def _plots(path: str, quiet: bool) -> None:
+    """Figures of the finished run, next to the file (python -m parflow.plot FILE redraws)."""
+    import logging
+    log = logging.getLogger("parflow")
+    try:
+        from .plot import make_plots
+        res = make_plots(path)
+    except Exception as exc:            # a figure must never turn a good run into a failure
+        log.warning("plots not drawn (%s: %s); run python -m parflow.plot %s", type(exc).__name__, exc, path)
+        return
+    if res.written:
+        log.info("figures: %s", ", ".join(res.written))
 
 
 if __name__ == "__main__":

@@ -92,6 +92,8 @@ def test_existing_output_needs_overwrite(tmp_path):
     with h5py.File(out) as f:
         assert f.attrs["status"] == "complete"
     assert not (tmp_path / "o.h5.tmp").exists()
+    figures = list((tmp_path / "o_plots").glob("*.png"))      # the main job draws its figures
+    assert any(p.name == "stress_strain.png" for p in figures), figures
 
 
 def test_restart_from_a_file_that_is_not_a_run(tmp_path):
@@ -108,7 +110,7 @@ def test_restart_from_a_file_that_is_not_a_run(tmp_path):
 def test_unused_petsc_option_warns(tmp_path):
     out = tmp_path / "o.h5"
     res = shear(scene_file(tmp_path, GOOD + '\n[petsc]\ntau_pc_factor_nonsense = 3\n'),
-                "--output", out, "-tau_ksp_bogus", "1")
+                "--output", out, "--no-plots", "-tau_ksp_bogus", "1")
     assert res.returncode == 0, res.stderr
     assert "not used" in res.stderr and "-tau_pc_factor_nonsense" in res.stderr \
         and "-tau_ksp_bogus" in res.stderr
@@ -117,7 +119,7 @@ def test_unused_petsc_option_warns(tmp_path):
 def test_command_line_petsc_option_wins_over_scene(tmp_path):
     out = tmp_path / "o.h5"
     text = GOOD + '\n[petsc]\ntau_pc_factor_mat_solver_type = "petsc"\n'
-    res = shear(scene_file(tmp_path, text), "--output", out, "--quiet",
+    res = shear(scene_file(tmp_path, text), "--output", out, "--quiet", "--no-plots",
                 "-tau_pc_factor_mat_solver_type", "cholmod")
     assert res.returncode == 0, res.stderr
     with h5py.File(out) as f:
@@ -135,7 +137,34 @@ def test_bad_scene_under_mpirun_does_not_hang(tmp_path):
 
 def test_two_rank_run_completes(tmp_path):
     out = tmp_path / "o.h5"
-    res = shear(scene_file(tmp_path, GOOD), "--output", out, mpi=2, timeout=120)
+    res = shear(scene_file(tmp_path, GOOD), "--output", out, "--no-plots", mpi=2, timeout=120)
     assert res.returncode == 0, res.stderr
     with h5py.File(out) as f:
         assert f.attrs["n_ranks"] == 2 and f.attrs["status"] == "complete"
+
+
+def test_killed_run_leaves_a_readable_file(tmp_path):
+    """SIGKILL in the middle of a run: the file is the complete file of the last flush."""
+    import signal
+    import time
+    out = tmp_path / "o.h5"
+    text = GOOD.replace("N = 50", "N = 3000").replace("V2_above = 100.0", "V2_above = 1e12") + \
+        "\n[output]\nflush_seconds = 0.2\n"
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    proc = subprocess.Popen([sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
+                             "--output", str(out), "--quiet", "--no-plots"], env=env,
+                            stderr=subprocess.PIPE)
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        time.sleep(0.5)
+        if out.exists():
+            with h5py.File(out) as f:
+                if f["timeseries/step"].shape[0] > 5:
+                    break
+    time.sleep(0.7)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    with h5py.File(out) as f:                        # opens: not corrupt
+        assert f.attrs["status"] == "running"
+        n = f["timeseries/step"].shape[0]
+        assert n > 5 and all(f["timeseries"][k].shape == (n,) for k in f["timeseries"])
