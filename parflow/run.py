@@ -5,6 +5,7 @@ alone writes the file and prints.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -16,6 +17,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from . import __version__
+from .cli import collective
 from .integrate import Heun, Jammed, StepControl
 from .io import RunWriter, load_group, read_run
 from .models import get_model
@@ -127,10 +129,8 @@ class Run:
 
     # ------------------------------------------------------------------------------------
     def _build_state(self) -> State:
-        state = None
-        if self.rank == 0:
-            state = self.model.build(self.scene["model"], self.scene["seed"])
-        return self.comm.tompi4py().bcast(state, root=0)
+        # built on rank 0 and broadcast; an InputError there is raised on every rank
+        return collective(self.comm, self.model.build, self.scene["model"], self.scene["seed"])
 
     def _observe(self, state, F) -> dict:
         obs = dict(sigma=F.sigma, sigma_tb=F.sigma_tb, sigma_mismatch=F.sigma_mismatch,
@@ -229,7 +229,7 @@ class Run:
         if ck is None:
             wom = self._omega_min(system)[0] if self.obs_cfg["omega_min_every"] else float("nan")
             record(F, None, obs, wom)
-            self._analysis(writer, system, state, F, step, gamma, obs)
+            self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
         try:
             while leg_k < len(legs):
                 leg = legs[leg_k]
@@ -241,7 +241,7 @@ class Run:
                 if why is not None:
                     log.info("leg %d/%d (%s) done at step %d, gamma = %.10g: %s", leg_k + 1,
                              len(legs), leg.spec["direction"], step, gamma, why)
-                    self._analysis(writer, system, state, F, step, gamma, obs)
+                    self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
                     leg_k, leg_strain, leg_steps = leg_k + 1, 0.0, 0
                     leg_start_obs, t_leg, steps_at_leg_start = dict(obs), time.monotonic(), step
                     continue
@@ -258,7 +258,7 @@ class Run:
                 record(F, res, obs, wom)
                 if not (np.isfinite(obs["sigma"]) and np.isfinite(obs["V2"])):
                     raise SolveError(f"non-finite stress at step {step}, gamma = {gamma:.10g}")
-                level = self._maybe_analysis(writer, system, state, F, step, gamma, obs, level)
+                level = self._maybe_analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs, level)
                 if self.obs_cfg["snapshot_every"] and step % self.obs_cfg["snapshot_every"] == 0 and writer:
                     writer.add_group(f"snapshots/{step:08d}", dict(s=s, V_na=F.V_na, tau=F.tau),
                                      dict(step=step, gamma=gamma, sigma=F.sigma))
@@ -284,7 +284,7 @@ class Run:
         except Jammed as exc:
             status, message = "jammed", str(exc)
             log.info("stopping: %s", message)
-            self._analysis(writer, system, state, F, step, gamma, obs)
+            self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
         except BaseException as exc:
             status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {gamma:.10g}, sigma = {obs['sigma']:.4g})"
             if writer:
@@ -351,6 +351,11 @@ class Run:
                       Bonds(bd["i"], bd["j"], bd["shift"], bd["l0"]), meta=meta)
         ck = {k: (v.item() if hasattr(v, "item") and np.ndim(v) == 0 else v) for k, v in ck.items()}
         return state, ck
+
+
+def _at(state: State, s: np.ndarray, gamma: float) -> State:
+    """The state at the current instant (positions s, strain gamma), for model analyses."""
+    return dataclasses.replace(state, s=s, gamma=gamma)
 
 
 def _hms(t: float) -> str:

@@ -49,7 +49,7 @@ PARAMS = {
             "packing fraction of the seed packing, in (0, 1) (0.86-0.90 gives z0 ~ 4.4-5)"),
     "pressure": (float, 0.0, lambda v: v >= 0.0,
                  ">= 0: target pressure of the packing (0: use phi instead)"),
-    "network_file": (str, "", None,
+    "network_file": (str, "", lambda v: True,
                      "network HDF5 file (network_build.save_network) to load; '' generates one"),
     "response_rods": (int, 8, lambda v: v >= 1, "number of rods beta for the point response (>= 1)"),
     "response_dr": (float, 0.5, lambda v: v > 0, "bin width of the point-response profiles (> 0)"),
@@ -260,7 +260,7 @@ def point_response(system, s: np.ndarray, h: np.ndarray, bonds: Bonds, rods: np.
     rods in a bin of all rods pooled), and VV the per-rod <V|V> = |V|^2."""
     mi = MinImage(h)
     rmax = mi.rmax if rmax is None else min(rmax, mi.rmax)
-    nbins = max(1, int(np.ceil(rmax / dr)))
+    nbins = max(1, int(rmax / dr))         # whole bins within the minimum-image radius
     sr = mi.reduced(s)
     mid = mi.reduced(bond_midpoints(s, bonds))
     nc = len(bonds)
@@ -342,7 +342,7 @@ def velocity_correlation(s: np.ndarray, h: np.ndarray, V: np.ndarray, dr: float,
     C, counts, sum_VV) (C is NaN in empty bins)."""
     mi = MinImage(h)
     rmax = mi.rmax if rmax is None or rmax <= 0 else min(rmax, mi.rmax)
-    nbins = max(1, int(np.ceil(rmax / dr)))
+    nbins = max(1, int(rmax / dr))         # whole bins within the minimum-image radius
     n, d = s.shape
     sr = mi.reduced(s)
     V = np.asarray(V, dtype=float)
@@ -488,3 +488,48 @@ def analyses(system, state: State, F) -> dict:
         arrays.update(omega_low=omega)
         scalars["omega_min_low"] = float(omega[0])
     return dict(arrays=arrays, scalars=scalars)
+
+
+# --------------------------------------------------------------------------- post-processing
+
+def reverse_branch(strain: np.ndarray, sigma: np.ndarray) -> dict:
+    """dsigma/dgamma along a reversed branch by finite differences of the recorded series.
+
+    ``strain``: accumulated |gamma| (the run's ``strain`` column) on the branch, ``sigma``
+    the stress.  Between consecutive records k, k+1 (x = strain since the reversal):
+        dsigma/dx = (sigma_{k+1} - sigma_k) / (x_{k+1} - x_k)  at sigma_mid = sqrt(sigma_k sigma_{k+1}),
+        C_k = -sigma_k sigma_{k+1} (x_{k+1} - x_k) / (sigma_{k+1} - sigma_k) = dx / d(1/sigma),
+    so that dsigma/dx = -sigma^2 / C means C_k = C for every k (exactly, for that law)."""
+    x = np.asarray(strain, float) - float(strain[0])
+    s = np.asarray(sigma, float)
+    dx, ds = np.diff(x), np.diff(s)
+    ok = dx > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dsdx = ds[ok] / dx[ok]
+        C = -s[:-1][ok] * s[1:][ok] * dx[ok] / ds[ok]
+    return dict(x=0.5 * (x[:-1] + x[1:])[ok], sigma=np.sqrt(s[:-1] * s[1:])[ok], dsdg=dsdx, C=C)
+
+
+def fit_reverse_branch(strain: np.ndarray, sigma: np.ndarray, lo: float, hi: float) -> dict:
+    """Over the records of a reversed branch with lo <= sigma <= hi: the exponent of
+    -dsigma/dgamma ~ sigma^a (least squares of logs, finite differences; expect a = 2) and
+    C from 1/sigma = 1/sigma_0 + x / C (linear least squares), with 1-sigma errors; also the
+    median and 16-84 % range of the local C_k."""
+    br = reverse_branch(strain, sigma)
+    m = (br["sigma"] >= lo) & (br["sigma"] <= hi) & (br["dsdg"] < 0)
+    out = dict(n=int(m.sum()), slope=np.nan, slope_err=np.nan, C=np.nan, C_err=np.nan,
+               C_median=np.nan, C_p16=np.nan, C_p84=np.nan)
+    if m.sum() < 4:
+        return out
+    X, Y = np.log(br["sigma"][m]), np.log(-br["dsdg"][m])
+    p, cov = np.polyfit(X, Y, 1, cov=True)
+    out.update(slope=float(p[0]), slope_err=float(np.sqrt(cov[0, 0])))
+    x = np.asarray(strain, float) - float(strain[0])
+    s = np.asarray(sigma, float)
+    w = (s >= lo) & (s <= hi)
+    q, cq = np.polyfit(x[w], 1.0 / s[w], 1, cov=True)
+    out.update(C=float(1.0 / q[0]), C_err=float(np.sqrt(cq[0, 0]) / q[0] ** 2))
+    Ck = br["C"][m]
+    out.update(C_median=float(np.median(Ck)), C_p16=float(np.percentile(Ck, 16)),
+               C_p84=float(np.percentile(Ck, 84)))
+    return out
