@@ -84,6 +84,13 @@ SCHEMA = {
         "progress_seconds": (float, 2.0, _POS),
     },
 }
+# step-control presets (the speed/accuracy trade; measured in docs/benchmarks.md)
+INTEGRATOR_PRESETS = {
+    "fast": dict(tol=0.2, max_displacement=0.2),
+    "default": dict(tol=0.05, max_displacement=0.05),
+    "tight": dict(tol=0.01, max_displacement=0.01),
+}
+
 LEG = {
     "direction": (str, None, (lambda v: v in ("forward", "reverse"), "'forward' or 'reverse'")),
     "sigma_above": (float, None, _POS),
@@ -152,6 +159,15 @@ def load_scene(text: str, source: str = "<scene>") -> dict:
             scene["model"] = _model(table)
         elif section == "petsc":
             scene["petsc"] = _petsc(table)
+        elif section == "integrator":
+            table = dict(table)
+            preset = table.pop("preset", "default")
+            if preset not in INTEGRATOR_PRESETS:
+                raise InputError(f"integrator.preset must be one of {list(INTEGRATOR_PRESETS)}, "
+                                 f"got {preset!r}")
+            scene["integrator_preset"] = preset
+            scene["integrator"] = _fill({**INTEGRATOR_PRESETS[preset], **table},
+                                        SCHEMA["integrator"], "integrator.")
         else:
             scene[section] = _fill(table, SCHEMA[section], f"{section}.")
     scene["protocol"]["leg"] = _legs(raw.get("protocol", {}).get("leg"))
