@@ -200,6 +200,8 @@ class Run:
         self._system = system
         last_ck_step, last_ck_time = step, time.monotonic()
         last_progress = 0.0
+        eta_est = EtaEstimate()
+        wom_last = float("nan")
         t_leg = time.monotonic()
         steps_at_leg_start = step
 
@@ -244,6 +246,7 @@ class Run:
                     self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
                     leg_k, leg_strain, leg_steps = leg_k + 1, 0.0, 0
                     leg_start_obs, t_leg, steps_at_leg_start = dict(obs), time.monotonic(), step
+                    eta_est = EtaEstimate()
                     continue
                 cap = leg.spec["strain"] - leg_strain if "strain" in leg.spec else None
                 res = integ.step(s, gamma, F, leg.direction, dg, dg_cap=cap)
@@ -255,6 +258,7 @@ class Run:
                 obs = self._observe(state, F)
                 every = self.obs_cfg["omega_min_every"]
                 wom = self._omega_min(system)[0] if every and step % every == 0 else float("nan")
+                wom_last = wom if np.isfinite(wom) else wom_last
                 record(F, res, obs, wom)
                 if not (np.isfinite(obs["sigma"]) and np.isfinite(obs["V2"])):
                     raise SolveError(f"non-finite stress at step {step}, gamma = {gamma:.10g}")
@@ -273,11 +277,11 @@ class Run:
                     last_progress = now
                     frac = leg.fraction(obs, leg_start_obs, leg_strain, leg_steps)
                     rate = (step - steps_at_leg_start) / max(now - t_leg, 1e-9)
-                    eta = (now - t_leg) * (1 - frac) / frac if frac > 0 else float("nan")
+                    eta = eta_est.update(now, frac)
                     log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
                              "  %.1f steps/s  leg ETA %s", step, leg_k + 1, len(legs),
                              "fwd" if leg.direction > 0 else "rev", gamma, obs["sigma"], obs["V2"],
-                             abs(res.dgamma), f"  omega_min={wom:.3e}" if np.isfinite(wom) else "",
+                             abs(res.dgamma), f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
                              rate, _hms(eta))
             else:
                 status, message = "complete", f"all {len(legs)} legs done"
@@ -356,6 +360,25 @@ class Run:
 def _at(state: State, s: np.ndarray, gamma: float) -> State:
     """The state at the current instant (positions s, strain gamma), for model analyses."""
     return dataclasses.replace(state, s=s, gamma=gamma)
+
+
+class EtaEstimate:
+    """Leg ETA from the recent rate of progress (the fraction of the leg done, measured in
+    log sigma or log V2 for stress targets): approaching jamming, progress slows down, so the
+    rate over the last ~30 s is a better guide than the average since the leg began."""
+
+    def __init__(self, window: float = 30.0):
+        self.window = window
+        self.hist: list[tuple[float, float]] = []
+
+    def update(self, now: float, frac: float) -> float:
+        self.hist.append((now, frac))
+        while len(self.hist) > 2 and now - self.hist[1][0] > self.window:
+            self.hist.pop(0)
+        t0, f0 = self.hist[0]
+        if now <= t0 or frac <= f0:
+            return float("nan")
+        return (1.0 - frac) * (now - t0) / (frac - f0)
 
 
 def _hms(t: float) -> str:
