@@ -154,7 +154,7 @@ def state_from_network(net: "_nb.Network", params: dict | None = None, path: str
                 min_degree=int(info.get("min_degree", -1)))
     for k in ("n", "phi", "pressure", "z", "n_rattlers"):
         if k in pinfo:
-            meta[f"packing_{k}"] = float(pinfo[k]) if k != "n" else int(pinfo[k])
+            meta[f"packing_{k}"] = int(pinfo[k]) if k in ("n", "n_rattlers") else float(pinfo[k])
     if isinstance(info.get("self_stress"), dict):
         meta["self_stresses"] = int(info["self_stress"]["self_stresses"])
     meta.update({k: (int(v) if isinstance(v, bool) else v)
@@ -296,7 +296,8 @@ def fit_two_exponentials(r: np.ndarray, P: np.ndarray, counts: np.ndarray | None
 
     Returns dict(l_c, l_c_err, l_r, l_r_err, A, B, rms) (NaN where the fit fails); the
     errors are one standard deviation from the covariance of the least-squares fit (scaled
-    by the residual), i.e. they measure how well two exponentials describe the profile."""
+    by the residual), i.e. they measure how well two exponentials describe the profile.
+    A tail that does not decay within the data (fitted l_r > 10 r_max) gives l_r = inf."""
     from scipy.optimize import curve_fit
     nan = dict(l_c=np.nan, l_c_err=np.nan, l_r=np.nan, l_r_err=np.nan, A=np.nan, B=np.nan,
                rms=np.nan)
@@ -329,7 +330,11 @@ def fit_two_exponentials(r: np.ndarray, P: np.ndarray, counts: np.ndarray | None
     lr_err = float(np.sqrt(max(pcov[1, 1] + pcov[3, 3] + 2 * pcov[1, 3], 0.0))) \
         if np.all(np.isfinite(pcov)) else np.nan
     rms = float(np.sqrt(np.mean((model(r, *popt) - y) ** 2)))
-    return dict(l_c=float(lc), l_c_err=float(err[1]), l_r=float(lc + dl), l_r_err=lr_err,
+    l_r = float(lc + dl)
+    if l_r > 10.0 * r[-1]:
+        # the tail does not decay within the box (l_r beyond the system size): not measurable
+        l_r, lr_err = float("inf"), float("nan")
+    return dict(l_c=float(lc), l_c_err=float(err[1]), l_r=l_r, l_r_err=lr_err,
                 A=float(np.exp(la)), B=float(np.exp(lb)), rms=rms)
 
 
@@ -382,10 +387,15 @@ def velocity_correlation(s: np.ndarray, h: np.ndarray, V: np.ndarray, dr: float,
     return dict(r=(np.arange(nbins) + 0.5) * dr, C=C, counts=counts, sum_VV=sums, V2=V2)
 
 
-def crossing_length(r: np.ndarray, C: np.ndarray, level: float = math.exp(-1)) -> float:
+def crossing_length(r: np.ndarray, C: np.ndarray, level: float = math.exp(-1),
+                    counts: np.ndarray | None = None, min_count: int = 50) -> float:
     """First r where C (starting at C(0) = 1) falls below ``level`` (linear interpolation
-    from the previous non-empty bin, or from (0, 1) if it is the first)."""
+    from the previous bin, or from (0, 1) if it is the first), over the bins holding at
+    least ``min_count`` pairs (nodes are not hard discs: a few pairs come closer than the
+    contact distance, and such sparse bins are noise)."""
     ok = np.isfinite(C)
+    if counts is not None:
+        ok &= counts >= min_count
     rr = np.concatenate([[0.0], r[ok]])
     cc = np.concatenate([[1.0], C[ok]])
     below = np.nonzero(cc < level)[0]
@@ -463,7 +473,7 @@ def analyses(system, state: State, F) -> dict:
     if meta["correlation"]:
         cr = velocity_correlation(s, h, F.V_na, float(meta["corr_dr"]), float(meta["corr_rmax"]))
         arrays.update(corr_r=cr["r"], corr_C=cr["C"], corr_counts=cr["counts"])
-        scalars["corr_length"] = crossing_length(cr["r"], cr["C"])
+        scalars["corr_length"] = crossing_length(cr["r"], cr["C"], counts=cr["counts"])
     # (c) spectrum
     mode = meta["spectrum"]
     if mode == "auto":
