@@ -154,16 +154,18 @@ def test_killed_run_leaves_a_readable_file(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
                              "--output", str(out), "--quiet", "--no-plots"], env=env,
                             stderr=subprocess.PIPE)
-    deadline = time.time() + 60
-    while time.time() < deadline:
-        time.sleep(0.5)
-        if out.exists():
-            with h5py.File(out) as f:
-                if "step" in f["timeseries"] and f["timeseries/step"].shape[0] > 5:
-                    break
-    time.sleep(0.7)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            time.sleep(0.5)
+            if out.exists():
+                with h5py.File(out) as f:
+                    if "step" in f["timeseries"] and f["timeseries/step"].shape[0] > 5:
+                        break
+        time.sleep(0.7)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
     with h5py.File(out) as f:                        # opens: not corrupt
         assert f.attrs["status"] == "running"
         n = f["timeseries/step"].shape[0]
