@@ -297,7 +297,8 @@ def fit_two_exponentials(r: np.ndarray, P: np.ndarray, counts: np.ndarray | None
     Returns dict(l_c, l_c_err, l_r, l_r_err, A, B, rms) (NaN where the fit fails); the
     errors are one standard deviation from the covariance of the least-squares fit (scaled
     by the residual), i.e. they measure how well two exponentials describe the profile.
-    A tail that does not decay within the data (fitted l_r > 10 r_max) gives l_r = inf."""
+    A tail that does not decay within the data (fitted l_r > 10 r_max) gives l_r = inf
+    (and a profile that does not decay at all, l_c = l_r = inf)."""
     from scipy.optimize import curve_fit
     nan = dict(l_c=np.nan, l_c_err=np.nan, l_r=np.nan, l_r_err=np.nan, A=np.nan, B=np.nan,
                rms=np.nan)
@@ -331,6 +332,9 @@ def fit_two_exponentials(r: np.ndarray, P: np.ndarray, counts: np.ndarray | None
         if np.all(np.isfinite(pcov)) else np.nan
     rms = float(np.sqrt(np.mean((model(r, *popt) - y) ** 2)))
     l_r = float(lc + dl)
+    if lc > 10.0 * r[-1]:
+        # no decay at all within the box (a flat profile): neither length is measurable
+        return dict(nan, l_c=float("inf"), l_r=float("inf"), rms=rms)
     if l_r > 10.0 * r[-1]:
         # the tail does not decay within the box (l_r beyond the system size): not measurable
         l_r, lr_err = float("inf"), float("nan")
