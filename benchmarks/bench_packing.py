@@ -6,7 +6,8 @@
 
 Each N runs in a fresh subprocess so that its peak RSS (resource.getrusage ru_maxrss) is
 its own.  Results (N, FIRE iterations, seconds wall and CPU, peak RSS, z0, z, ...) go to
-docs/benchmarks/packing.json (replaced on every run; the load average is recorded because
+docs/benchmarks/packing.json (rewritten after every run; --append keeps earlier
+results; the load average is recorded because
 the machine may be shared: CPU seconds are the steadier number).
 """
 from __future__ import annotations
@@ -71,6 +72,8 @@ def main(argv=None):
     ap.add_argument("--kernel", nargs="+", default=["auto"], choices=["auto", "numpy", "numba"],
                     help="force kernel(s) to time (numba: optional compiled pair loop)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "packing.json"))
+    ap.add_argument("--append", action="store_true",
+                    help="keep the results already in --out and add these")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.one:
@@ -78,8 +81,8 @@ def main(argv=None):
         return 0
     sizes = list(a.sizes) + ([1_000_000] if a.large else [])
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    results = []
     out = Path(a.out)
+    results = json.loads(out.read_text())["results"] if a.append and out.exists() else []
     for n in sizes:
         for kernel in a.kernel:
             cmd = [sys.executable, __file__, "--one", str(n), "--phi", str(a.phi),

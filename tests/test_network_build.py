@@ -204,3 +204,14 @@ def test_dilution_stuck_is_reported():
 def test_bonds_type(net):
     assert isinstance(net.bonds, Bonds)
     assert net.bonds.shift.shape == (len(net.bonds), 2)
+
+
+def test_three_dimensional_network():
+    p = pk.make_packing(128, 0.72, d=3, seed=2)
+    net = nb.network_from_packing(p, 5.5, seed=0)
+    assert net.d == 3 and net.h0.shape == (3, 3)
+    assert abs(net.z - 5.5) <= 1.0 / net.n + 1e-15
+    assert net.degrees().min() >= 4
+    assert net.info["self_stress"]["self_stresses"] == 0
+    with pytest.raises(InputError, match="z < 2d = 6 in 3D"):
+        nb.network_from_packing(p, 6.0)
