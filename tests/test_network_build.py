@@ -215,3 +215,21 @@ def test_three_dimensional_network():
     assert net.info["self_stress"]["self_stresses"] == 0
     with pytest.raises(InputError, match="z < 2d = 6 in 3D"):
         nb.network_from_packing(p, 6.0)
+
+
+def test_sparse_and_dense_rigidity_matrices_agree(net):
+    S = nb.rigidity_matrix_dense(net.s, net.h0, net.bonds)
+    Ss = nb.rigidity_matrix_sparse(net.s, net.h0, net.bonds)
+    assert np.array_equal(Ss.toarray(), S)
+
+
+def test_self_stress_is_detected():
+    """A rigid triangle plus a fourth, redundant bond on a square with both diagonals:
+    the complete graph K4 in 2D has 6 bonds on 8 - 3 = 5 degrees of freedom: one
+    self-stress."""
+    s = np.array([[0.1, 0.1], [0.3, 0.1], [0.3, 0.3], [0.1, 0.3]])
+    i = np.array([0, 1, 2, 3, 0, 1])
+    j = np.array([1, 2, 3, 0, 2, 3])
+    bonds = Bonds(i, j, np.zeros((6, 2), dtype=int), np.ones(6))
+    info = nb.self_stress_check(s, np.eye(2) * 10.0, bonds)
+    assert info["self_stresses"] == 1 and info["rank"] == 5
