@@ -101,46 +101,56 @@ def test_run_writes_a_complete_file(comm, mpi_tmp_path):
     path = str(mpi_tmp_path / "run.h5")
     scene = chain_scene(path, extra="[observables]\nanalysis_per_decade = 1\nomega_min_every = 25\n")
     assert run_scene(scene) == "complete"
-    if comm.rank == 0:
-        with h5py.File(path) as f:
-            assert f.attrs["status"] == "complete" and f.attrs["n_ranks"] == comm.size
-            assert "seed = 4" in f.attrs["scene"] and "tau_" in f.attrs["petsc_options"]
-            ts = f["timeseries"]
-            n = ts["step"].shape[0]
-            assert n == f.attrs["steps"] + 1 and all(ts[k].shape == (n,) for k in ts)
-            np.testing.assert_array_equal(ts["step"][:], np.arange(n))
-            assert ts["V2"][-2] < 1e5 <= ts["V2"][:].max()
-            dirs = ts["direction"][:]
-            assert dirs[1] == 1 and dirs[-1] == -1
-            assert np.all(ts["length_error"][:] < 1e-10)
-            assert np.nanmax(ts["sigma_mismatch"][:]) < 1e-6
-            om = ts["omega_min"][:]
-            assert np.isfinite(om[::25]).all() and np.isnan(om[1])
-            assert len(f["analysis"]) >= 4
-            a = f["analysis"][sorted(f["analysis"])[-1]]
-            assert a["C_n"][0] == pytest.approx(1.0) and "l_corr" in a.attrs
-            assert not any(name.endswith(".tmp") for name in f.attrs)
     comm.barrier()
+    # every rank reads the file: an assertion on one rank only would strand the others
+    with h5py.File(path) as f:
+        assert f.attrs["status"] == "complete" and f.attrs["n_ranks"] == comm.size
+        assert "seed = 4" in f.attrs["scene"] and "tau_" in f.attrs["petsc_options"]
+        ts = f["timeseries"]
+        n = ts["step"].shape[0]
+        assert n == f.attrs["steps"] + 1 and all(ts[k].shape == (n,) for k in ts)
+        np.testing.assert_array_equal(ts["step"][:], np.arange(n))
+        assert ts["V2"][-2] < 1e5 <= ts["V2"][:].max()
+        dirs = ts["direction"][:]
+        assert dirs[1] == 1 and dirs[-1] == -1
+        assert np.all(ts["length_error"][:] < 1e-10)
+        assert np.nanmax(ts["sigma_mismatch"][:]) < 1e-6
+        om = ts["omega_min"][:]
+        assert np.isfinite(om[::25]).all() and np.isnan(om[1])
+        assert len(f["analysis"]) >= 4
+        a = f["analysis"][sorted(f["analysis"])[-1]]
+        assert a["C_n"][0] == pytest.approx(1.0) and "l_corr" in a.attrs
+        assert not any(name.endswith(".tmp") for name in f.attrs)
 
 
-def test_two_ranks_equal_one_rank(comm, mpi_tmp_path):
-    """The same scene on COMM_SELF (CHOLMOD) and on COMM_WORLD (MUMPS when size > 1)."""
+@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
+def test_two_ranks_equal_one_rank(comm, mpi_tmp_path, parallel):
+    """The same scene on COMM_SELF (CHOLMOD) and on COMM_WORLD (several ranks: CHOLMOD on
+    every rank, or the distributed MUMPS factorisation)."""
     if comm.size == 1:
         pytest.skip("compares 1 rank with several: run under mpirun -n 2")
-    p_world = str(mpi_tmp_path / "world.h5")
-    p_self = str(mpi_tmp_path / f"self{comm.rank}.h5")
+    p_world = str(mpi_tmp_path / f"world_{parallel}.h5")
+    p_self = str(mpi_tmp_path / f"self{comm.rank}_{parallel}.h5")
     legs = '[[protocol.leg]]\ndirection = "forward"\nV2_above = 1e4\n' \
            '[[protocol.leg]]\ndirection = "reverse"\nstrain = 0.002\n'
-    run_scene(chain_scene(p_world, legs=legs), PETSc.COMM_WORLD)
-    run_scene(chain_scene(p_self, legs=legs), PETSc.COMM_SELF)
+    extra = f'[solver]\nparallel = "{parallel}"\n'
+    run_scene(chain_scene(p_world, legs=legs, extra=extra), PETSc.COMM_WORLD)
+    run_scene(chain_scene(p_self, legs=legs, extra=extra), PETSc.COMM_SELF)
     comm.barrier()
-    if comm.rank == 0:
-        with h5py.File(p_world) as a, h5py.File(p_self) as b:
-            assert a.attrs["n_ranks"] == comm.size and b.attrs["n_ranks"] == 1
-            for q in ("gamma", "sigma", "V2"):
-                x, y = a["timeseries"][q][:], b["timeseries"][q][:]
-                assert x.shape == y.shape
+    # every rank reads the file: an assertion on one rank only would strand the others
+    with h5py.File(p_world) as a, h5py.File(p_self) as b:
+        assert a.attrs["n_ranks"] == comm.size and b.attrs["n_ranks"] == 1
+        fwd = a["timeseries/direction"][:] >= 0
+        for q in ("gamma", "sigma", "V2"):
+            x, y = a["timeseries"][q][:], b["timeseries"][q][:]
+            assert x.shape == y.shape
+            if parallel == "redundant":     # the same CHOLMOD factorisation on every rank
                 np.testing.assert_allclose(x, y, rtol=1e-10, atol=0)
+            else:
+                # MUMPS and CHOLMOD differ by round-off (~eps cond(N)); the step-size control
+                # and the reversed (unstable, round-off-seeded) branch amplify it
+                np.testing.assert_allclose(x[fwd], y[fwd], rtol=1e-9, atol=0)
+                np.testing.assert_allclose(x, y, rtol=1e-6, atol=0)
     comm.barrier()
 
 
@@ -154,11 +164,11 @@ def test_restart_equals_uninterrupted(comm, mpi_tmp_path):
     scene["output"]["path"] = part
     assert run_scene(scene, restart=True, max_steps=10**6) == "complete"
     comm.barrier()
-    if comm.rank == 0:
-        with h5py.File(full) as a, h5py.File(part) as b:
-            assert a["timeseries/step"].shape == b["timeseries/step"].shape
-            for q in ("gamma", "sigma", "V2", "dgamma"):
-                np.testing.assert_array_equal(a["timeseries"][q][:], b["timeseries"][q][:])
-            np.testing.assert_array_equal(a["checkpoint/s"][:], b["checkpoint/s"][:])
-            assert b.attrs["restarted_at_step"] > 0
+    # every rank reads the file: an assertion on one rank only would strand the others
+    with h5py.File(full) as a, h5py.File(part) as b:
+        assert a["timeseries/step"].shape == b["timeseries/step"].shape
+        for q in ("gamma", "sigma", "V2", "dgamma"):
+            np.testing.assert_array_equal(a["timeseries"][q][:], b["timeseries"][q][:])
+        np.testing.assert_array_equal(a["checkpoint/s"][:], b["checkpoint/s"][:])
+        assert b.attrs["restarted_at_step"] > 0
     comm.barrier()
