@@ -7,7 +7,6 @@ and of the embedded default scene.  Writes docs/benchmarks/chain_fig2.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -17,8 +16,9 @@ import time
 
 import h5py
 
+import results  # noqa: E402  (benchmarks/results.py)
+
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-OUT = os.path.join(ROOT, "docs", "benchmarks", "chain_fig2.json")
 
 
 def run(scene: str | None, ranks: int, out: str) -> dict:
@@ -49,10 +49,7 @@ def main():
     data = dict(benchmark="Fig. 2 chain run and default scene: wall time", rows=rows,
                 date=time.strftime("%Y-%m-%d %H:%M:%S"), load_before=os.getloadavg(),
                 cpus=os.cpu_count())
-    os.makedirs(os.path.dirname(OUT), exist_ok=True)
-    with open(OUT + ".tmp", "w") as fh:
-        json.dump(data, fh, indent=1)
-    os.replace(OUT + ".tmp", OUT)
+    results.write("chain_fig2", data)
 
 
 if __name__ == "__main__":

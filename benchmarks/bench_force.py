@@ -37,7 +37,7 @@ from parflow.solvers import configure_cholesky  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402
 from parflow.system import BondedSystem  # noqa: E402
 
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "benchmarks", "force.json")
+import results  # noqa: E402  (benchmarks/results.py)
 
 
 def chain_state(nc: int) -> State:
@@ -165,8 +165,8 @@ def main():
                       f"N values {1e3 * rec['load_N_seconds']:.2f} ms)", flush=True)
     if comm.getRank() == 0:
         data = {"benchmark": "force evaluation vs raw refactor+solve", "records": []}
-        if os.path.exists(OUT):
-            with open(OUT) as fh:
+        if os.path.exists(results.path("force")):
+            with open(results.path("force")) as fh:
                 data = json.load(fh)
         keyf = lambda r: (r["system"], r["Nc"], r["ranks"], r["parallel"])  # noqa: E731
         new = {keyf(r) for r in records}
@@ -174,11 +174,7 @@ def main():
         data["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(),
                                load=os.getloadavg())
         data["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-        os.makedirs(os.path.dirname(OUT), exist_ok=True)
-        tmp = OUT + ".tmp"
-        with open(tmp, "w") as fh:
-            json.dump(data, fh, indent=1)
-        os.replace(tmp, OUT)
+        results.write("force", data)
 
 
 if __name__ == "__main__":

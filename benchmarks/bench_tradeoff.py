@@ -18,7 +18,6 @@ with a reference run (integrator tol = max_displacement = 0.002, solver "accurat
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 import tempfile
@@ -35,7 +34,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "benchmarks", "tradeoff.json")
+import results  # noqa: E402  (benchmarks/results.py)
 
 SCENE = """
 seed = 1
@@ -125,10 +124,7 @@ def main():
                    reference=dict(tol=0.002, max_displacement=0.002, solver="accurate",
                                   wall_seconds=ref["wall"], steps=int(ref["gamma"].size - 1)),
                    date=time.strftime("%Y-%m-%d %H:%M:%S"), load=os.getloadavg(), rows=rows)
-    os.makedirs(os.path.dirname(OUT), exist_ok=True)
-    with open(OUT + ".tmp", "w") as fh:
-        json.dump(out, fh, indent=1)
-    os.replace(OUT + ".tmp", OUT)
+    results.write("tradeoff", out)
 
 
 if __name__ == "__main__":
