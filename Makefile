@@ -4,6 +4,7 @@
 #   make test                       pytest serial, then under mpirun -n 2; fails if either fails
 #   make run [SCENE=x.toml] [ARGS=...] [NP=2]
 #                                   mpirun -n $(NP) python -m parflow.shear $(SCENE) $(ARGS)
+#                                   (ARGS defaults to --overwrite: make run can be repeated)
 #   make bench                      every benchmarks/bench_*.py with the venv python
 #   make clean                      remove .venv and caches (not out/ or runs/)
 
@@ -18,7 +19,7 @@ ENV    := . scripts/env.sh &&
 
 NP          ?= 2
 SCENE       ?=
-ARGS        ?=
+ARGS        ?= --overwrite
 PYTEST_ARGS ?=
 
 .PHONY: help setup test test-serial test-mpi run bench clean
