@@ -1,0 +1,113 @@
+"""Render docs/benchmarks.md from the JSON files the benchmarks wrote (docs/benchmarks/*.json),
+so that every number quoted in the docs comes from a benchmark run of this code.
+
+    python benchmarks/report.py
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import results
+
+DOC = os.path.join(results.FOLDER, "..", "benchmarks.md")
+
+
+def load(name):
+    p = results.path(name)
+    if not os.path.exists(p):
+        return None
+    with open(p) as fh:
+        return json.load(fh)
+
+
+def force_section(d):
+    out = ["## Force evaluation against the raw factorisation (`bench_force.py`)", "",
+           "One parflow force evaluation (pair geometry, values of N, numeric refactorisation, "
+           "solve, residual check, gather of τ, V_na = Sᵀτ) against a bare PETSc KSP doing only "
+           "the numeric refactorisation and the solve, on the same matrix in the same run "
+           "(median of repeated evaluations).  Target: ratio ≤ 1.2 at Nc = 1e5.", "",
+           "| system | Nc | ranks | factor | parflow (ms) | raw refactor+solve (ms) | ratio | geometry (ms) | N values (ms) |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(d["records"], key=lambda r: (r["system"], r["Nc"], r["ranks"])):
+        out.append(f"| {r['system']} | {r['Nc']:,} | {r['ranks']} | {r['factor_package']} | "
+                   f"{1e3 * r['force_seconds']:.2f} | {1e3 * r['raw_refactor_solve_seconds']:.2f} | "
+                   f"{r['ratio']:.2f} | {1e3 * r['geometry_seconds']:.2f} | {1e3 * r['load_N_seconds']:.2f} |")
+    out += ["", f"Measured {d.get('date', '?')}, load average at the end {d.get('machine', {}).get('load', '?')}.",
+            "For the chain, N is a cyclic tridiagonal matrix whose factorisation costs almost "
+            "nothing, so the fixed per-step work (geometry, assembly, gather) dominates and the "
+            "ratio is large while the absolute cost is small; for 2D networks the "
+            "factorisation dominates.", ""]
+    return out
+
+
+def tradeoff_section(d):
+    ref = d["reference"]
+    out = ["## Speed against accuracy: presets (`bench_tradeoff.py`)", "",
+           f"System: {d['system']}.  Reference: integrator tol = max_displacement = "
+           f"{ref['tol']}, solver `{ref['solver']}` ({ref['steps']} steps, "
+           f"{ref['wall_seconds']:.2f} s).  Errors: `err_forward` = max |log σ − log σ_ref| on "
+           "the forward branch at equal γ; `err_gamma` = error on the strain where ⟨V²⟩ "
+           "crosses 1e6, relative to γ_c − γ there; `err_reverse` = max |log σ − log σ_ref| on "
+           "the reversed branch at equal distance from the turn.", "",
+           "| integrator preset | solver preset | wall (s) | steps | err_forward | err_gamma | err_reverse |",
+           "|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        out.append(f"| {r['integrator']} | {r['solver']} | {r['wall_seconds']:.2f} | {r['steps']} | "
+                   f"{r['err_forward']:.1e} | {r['err_gamma']:.1e} | {r['err_reverse']:.1e} |")
+    out += ["", "The forward error falls roughly as tol² (second-order step); the solver preset "
+            "changes nothing measurable there (the direct solve is already backward stable).  "
+            "The reversed branch differs from the reference by O(1) in log σ for every setting, the "
+            "accurate solver included: it grows from round-off (the straightened chain is an "
+            "unstable fixed point of the reversed flow), so only its statistics, not its "
+            "trajectory, are reproducible (docs/chain.md).", "",
+            f"Measured {d.get('date', '?')}, load average {d.get('load', '?')}.", ""]
+    return out
+
+
+def chain_section(d):
+    out = ["## The Fig. 2 chain run (`bench_chain_fig2.py`)", "",
+           "Target: the Fig. 2 chain run (N = 10⁴, forward to ⟨V²⟩ = 10⁸ and reverse) in ≤ 2 "
+           "minutes on 2 cores.", "",
+           "| scene | ranks | wall (s) | step loop (s) | steps | solver |", "|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        out.append(f"| {r['scene']} | {r['ranks']} | {r['wall_seconds']:.1f} | {r['loop_seconds']:.1f} | "
+                   f"{r['steps']} | {r['solver']} |")
+    out += ["", f"Measured {d.get('date', '?')}, load average before {d.get('load_before', '?')} "
+            f"on {d.get('cpus', '?')} cores.", ""]
+    return out
+
+
+def packing_section(d):
+    out = ["## Packings and networks (`bench_packing.py`)", "",
+           "| N | kernel | packing + network (s) | iterations | bonds | z | peak RSS (MB) |",
+           "|---|---|---|---|---|---|---|"]
+    for r in d.get("results", []):
+        out.append(f"| {r['N']:,} | {r.get('kernel', '?')} | {r.get('total_seconds', float('nan')):.1f} | "
+                   f"{r.get('iterations', '?')} | {r.get('n_bonds', '?')} | {r.get('z', '?')} | "
+                   f"{r.get('peak_rss_mb', '?')} |")
+    out += ["", f"Measured {d.get('date', '?')}.", ""]
+    return out
+
+
+def main():
+    lines = ["# Benchmarks", "",
+             "Generated by `python benchmarks/report.py` from `docs/benchmarks/*.json`, which the "
+             "benchmarks in `benchmarks/` write (`make bench` runs them all).  The machine: 2 "
+             "cores, Debian 12, PETSc 3.18 / CHOLMOD / MUMPS from Debian.  Numbers taken while "
+             "other jobs shared the cores say so in their load average.", ""]
+    for name, fn in (("force", force_section), ("chain_fig2", chain_section),
+                     ("tradeoff", tradeoff_section), ("packing", packing_section)):
+        d = load(name)
+        if d is not None:
+            lines += fn(d)
+        else:
+            lines += [f"## {name}", "", f"(no results yet: run benchmarks/bench_{name}.py)", ""]
+    with open(DOC + ".tmp", "w") as fh:
+        fh.write("\n".join(lines))
+    os.replace(DOC + ".tmp", DOC)
+    print(os.path.abspath(DOC))
+
+
+if __name__ == "__main__":
+    main()
