@@ -288,6 +288,7 @@ class Run:
         except Jammed as exc:
             status, message = "jammed", str(exc)
             log.info("stopping: %s", message)
+            system.load(F.n)      # the factor loaded last belongs to a rejected trial step
             self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
         except BaseException as exc:
             status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {gamma:.10g}, sigma = {obs['sigma']:.4g})"
