@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cell import pair_geometry
+from .cell import cell_at, pair_geometry
 from .operators import RigidityOperators
-from .solvers import CholeskySolver, SolveInfo
+from .solvers import CholeskySolver, SingularOperator, SolveInfo
 from .state import State
 
 
@@ -74,7 +74,7 @@ class BondedSystem:
 
     def geometry(self, s: np.ndarray, gamma: float):
         st, bd = self.state, self.state.bonds
-        h = _cell(st, gamma)
+        h = cell_at(st.h0, st.E, gamma)
         r, ell, n, b = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
         return h, r, ell, n, b
 
@@ -112,26 +112,24 @@ class BondedSystem:
     def project(self, s: np.ndarray, gamma: float, tol: float = 1e-13, max_iter: int = 30):
         """Restore rod lengths: quasi-Newton with the loaded factor,
         dr = -S^T N^-1 (l - l0), iterated until max|l - l0| <= tol (absolute, in a0).
-        Returns (s, iterations, final error).  Raises SolveError if it does not converge."""
+        Returns (s, iterations, final error).  Raises SingularOperator if it does not
+        converge (the constraints cannot be met: the system has jammed)."""
         st, bd = self.state, self.state.bonds
-        h = _cell(st, gamma)
+        h = cell_at(st.h0, st.E, gamma)
         hinv = np.linalg.inv(h)
         # lengths computed from r = h (s_j + n - s_i) carry a round-off ~ eps |h| |s|:
         # the tolerance cannot be tighter than that (a box of 1e4 a0 gives ~1e-12 a0)
         tol = max(tol, 8 * np.finfo(float).eps * np.abs(h).max() * max(1.0, np.abs(s).max()))
-        err0 = None
         for it in range(max_iter + 1):
             r, ell, _, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
             g = ell - bd.l0
             err = float(np.max(np.abs(g)))
             if err <= tol:
                 return s, it, err
-            if it == max_iter or (err0 is not None and not np.isfinite(err)):
+            if it == max_iter or not np.isfinite(err):
                 break
-            err0 = err
             x = self.solve_N(-g, what="projection")
             s = s + self.ST(x) @ hinv.T
-        from .solvers import SingularOperator
         raise SingularOperator(f"projection on the rod constraints did not converge "
                                f"(max |l - l0| = {err:.3e} after {max_iter} iterations)")
 
@@ -141,7 +139,3 @@ class BondedSystem:
         self._rhs.destroy()
         self.ops.destroy()
 
-
-def _cell(state: State, gamma: float) -> np.ndarray:
-    from .cell import cell_at
-    return cell_at(state.h0, state.E, gamma)
