@@ -1,0 +1,497 @@
+"""Hard-disc suspension in simple shear (affine solvent model; DESIGN §2, §5; issue 4, first slice).
+
+Binary 50:50 discs, radius ratio 1.4, small *diameter* 1, under Lees-Edwards shear
+h(gamma) = [[Lx, gamma Ly], [0, Ly]], V_f = E r with E = [[0, 1], [0, 0]].
+
+One step of strain dg (a "catching-up" scheme, Maury & Venel; Lerner, Düring & Wyart 2013):
+
+* candidate pairs: gap h_a = |r_a| - (R_i + R_j) < skin, found by a cKDTree with periodic
+  ``boxsize`` in the orthogonal reference frame of the *remapped* cell (tilt reduced into
+  [-Lx/2, Lx/2] by a lattice vector), query radius enlarged by the metric distortion of the
+  tilt, then filtered with the true minimum-image distance.  Vectorised, no Python loop.
+* contact forces: the LCP over the candidates
+      w = N_C f + b_C + h_C/dg >= 0,   f >= 0,   f . w = 0,     N_C = S_C S_C^T,
+  i.e. f = argmin_{f >= 0} 1/2 f^T N_C f + f^T q,  q = b + h/dg  (= the NNLS
+  min_{f>=0} |S_C^T f + V_f-part|^2 with the gap term).  Solved by a warm-started primal
+  active set (Lawson-Hanson with block additions, single additions as the fall-back);
+  each inner solve factors the active N_AA (scipy SuperLU on the symmetric matrix, natural
+  symmetric ordering -- see docs/suspensions.md for why not PETSc yet).
+* a singular N_AA (a state of self-stress among the active contacts) is detected from the
+  factor's pivots / the residual and handled by a Tikhonov shift eps ||N|| I (the
+  minimum-norm force among the self-stress family, to O(eps)); each event is counted.
+* the step: V_na = S_C^T f, s += dg h(gamma+dg)^-1 V_na, gamma += dg.  Using the *end*
+  cell makes the pair-vector update exact, r' = r + dg (E r + dV), so the new gap obeys
+  |r'| - sigma >= n.r' - sigma = dg w >= 0 (the linearised constraint is conservative):
+  overlaps can only come from round-off, the LCP tolerance, or a pair outside the list,
+  which the step bound dg (2 R_max + skin + 2 max|V_na|) < skin excludes.
+
+Signs: f > 0 is compression; sigma = |V_na|^2 / Omega; with collisions in the step
+|V_na|^2 = -<f|b> - <f|h>/dg exactly (complementarity), so -<f|b>/Omega equals sigma only
+when the force-bearing contacts are closed (h = 0).
+
+Everything is replicated numpy/scipy: under MPI each rank runs the same computation and
+gets bit-identical results (no PETSc communicator is involved yet).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from .cell import cell_at, velocity_gradient
+from .state import InputError, State
+
+PHI_J = 0.843              # shear-jamming packing fraction of the 50:50, 1.4 mixture (2D)
+SMALL_DIAMETER = 1.0
+RADIUS_RATIO = 1.4
+DEFAULT_SKIN = 0.3
+
+
+# =========================================================================== initial states
+
+def binary_radii(n: int, ratio: float = RADIUS_RATIO, composition=(0.5, 0.5),
+                 rng: np.random.Generator | None = None) -> np.ndarray:
+    """Radii of a binary mixture: small diameter 1, large diameter ``ratio``; ``composition``
+    = (fraction small, fraction large).  Randomly labelled if ``rng`` is given."""
+    check_mixture(ratio, composition)
+    n_small = int(round(n * composition[0]))
+    r = np.full(n, 0.5 * SMALL_DIAMETER * ratio)
+    r[:n_small] = 0.5 * SMALL_DIAMETER
+    if rng is not None:
+        r = r[rng.permutation(n)]
+    return r
+
+
+def check_mixture(ratio, composition) -> None:
+    if not (isinstance(ratio, (int, float, np.floating)) and math.isfinite(ratio)) or ratio <= 0:
+        raise InputError(f"suspension: radius ratio must be a finite number > 0, got {ratio!r}")
+    comp = np.asarray(composition, dtype=float)
+    if comp.shape != (2,) or np.any(~np.isfinite(comp)) or np.any(comp < 0):
+        raise InputError(f"suspension: composition must be two fractions >= 0 "
+                         f"(small, large), got {composition!r}")
+    if abs(comp.sum() - 1.0) > 1e-12:
+        raise InputError(f"suspension: composition fractions must sum to 1, got "
+                         f"{list(comp)} (sum {comp.sum():.6g})")
+
+
+def check_phi(phi) -> None:
+    if not (isinstance(phi, (int, float, np.floating)) and math.isfinite(phi)) or phi <= 0:
+        raise InputError(f"suspension: packing fraction phi must be a number > 0, got {phi!r}")
+    if phi >= PHI_J:
+        raise InputError(
+            f"suspension: phi = {phi:g} is at or above the jamming packing fraction "
+            f"phi_J ~ {PHI_J} of this mixture: hard discs there cannot flow (the stress is "
+            f"infinite; any non-overlapping configuration is jammed or nearly so). "
+            f"Use phi < {PHI_J} (the paper's range is 0.820-0.840)")
+
+
+def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_RATIO,
+                    composition=(0.5, 0.5), inflate: float = 1e-6,
+                    max_iter: int = 200_000) -> State:
+    """Non-overlapping binary discs at packing fraction ``phi`` < phi_J in a square box.
+
+    Uniform random positions, then the soft-disc FIRE minimiser of ``models.packing`` with
+    radii inflated by (1 + ``inflate``) until no (inflated) pair overlaps: the true discs
+    then have every gap >= inflate * (R_i + R_j) > 0, verified exactly afterwards.
+    """
+    from .models import packing as pk
+    check_phi(phi)
+    check_mixture(ratio, composition)
+    if not isinstance(n, (int, np.integer)) or n < 16:
+        raise InputError(f"suspension: N must be an integer >= 16, got {n!r}")
+    rng = np.random.default_rng(seed)
+    radii = binary_radii(n, ratio, composition, rng)
+    L = float((np.pi * np.sum(radii ** 2) / phi) ** 0.5)
+    box = np.array([L, L])
+    pl = pk._PairList(radii * (1.0 + inflate), box, 0.4, "auto")
+    if L <= 2.0 * pl.cut:
+        raise InputError(f"suspension: N = {n} gives a box of side {L:.3g}: too small, use more discs")
+    X = np.ascontiguousarray((rng.random((n, 2)) * box).T)
+    X, info = pk.fire_minimize(X, pl, 1e-12, max_iter=max_iter)
+    X = pl.build(X)
+    _, r = pl.pair_vectors(X)
+    if np.any(r < radii[pl.i] + radii[pl.j]) or not info["converged"]:
+        raise RuntimeError(f"suspension: the push-off did not remove every overlap in "
+                           f"{info['iterations']} FIRE iterations (phi = {phi} too close to jamming?)")
+    s = pk._wrap01(X.T / box)
+    h0 = np.diag(box)
+    state = State(s, h0, velocity_gradient("shear", 2), 0.0, None, radii)
+    state.meta.update(model="suspension", phi=float(np.pi * np.sum(radii ** 2) / L ** 2),
+                      seed=seed, fire_iterations=info["iterations"])
+    gap = min_gap(state)
+    if gap < 0:
+        raise RuntimeError(f"suspension: initial state overlaps by {-gap:.3g}")
+    state.meta["initial_min_gap"] = gap
+    return state
+
+
+def from_configuration(positions, radii, box, gamma: float = 0.0) -> State:
+    """A State from user positions (N, 2) in a square/rectangular box (Lx, Ly) at strain
+    ``gamma``; refuses overlapping discs, non-positive radii and phi >= phi_J."""
+    X = np.asarray(positions, dtype=float)
+    radii = np.asarray(radii, dtype=float)
+    box = np.asarray(box, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 2 or radii.shape != (X.shape[0],) or box.shape != (2,):
+        raise InputError("suspension: positions must be (N, 2), radii (N,), box (2,)")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(radii)) and np.all(box > 0)):
+        raise InputError("suspension: positions, radii and box must be finite, box > 0")
+    if np.any(radii <= 0):
+        raise InputError("suspension: every radius must be > 0")
+    h0 = np.diag(box)
+    E = velocity_gradient("shear", 2)
+    h = cell_at(h0, E, gamma)
+    s = X @ np.linalg.inv(h).T
+    state = State(s - np.floor(s), h0, E, float(gamma), None, radii.copy())
+    phi = float(np.pi * np.sum(radii ** 2) / np.prod(box))
+    check_phi(phi)
+    state.meta.update(model="suspension", phi=phi)
+    c = find_candidates(state.s, radii, state.h, E, 0.0)
+    bad = c.gap < 0
+    if np.any(bad):
+        raise InputError(f"suspension: the configuration has {int(bad.sum())} overlapping "
+                         f"pair(s), the largest overlap {-c.gap.min():.3g} a0 (e.g. discs "
+                         f"{int(c.i[bad][0])} and {int(c.j[bad][0])}); hard discs must not overlap")
+    return state
+
+
+# =========================================================================== neighbours
+
+@dataclass
+class Candidates:
+    """Candidate pairs (i < j) and their geometry in the current cell."""
+
+    i: np.ndarray
+    j: np.ndarray
+    shift: np.ndarray      # (Nc, d) integer image shifts in the state's frame: r = h (s_j + n - s_i)
+    r: np.ndarray          # (Nc, d)
+    dist: np.ndarray
+    n: np.ndarray          # unit vectors
+    gap: np.ndarray        # |r| - (R_i + R_j)
+    b: np.ndarray          # n . E r
+
+    def __len__(self):
+        return int(self.i.shape[0])
+
+
+def remap(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lees-Edwards remapping: U unimodular with h_r = h U, tilt |h_r[0,1]| <= Lx/2."""
+    k = -np.rint(h[0, 1] / h[0, 0])
+    U = np.array([[1.0, k], [0.0, 1.0]])
+    return h @ U, U
+
+
+def find_candidates(s, radii, h, E, skin: float) -> Candidates:
+    """All pairs with gap < ``skin`` (minimum image in the remapped cell)."""
+    hr, U = remap(h)
+    Uinv = np.linalg.inv(U)
+    sr = s @ Uinv.T                           # reduced coordinates in the remapped cell
+    off = np.floor(sr)
+    sr = sr - off
+    sr[sr >= 1.0] = 0.0
+    Lx, Ly = hr[0, 0], hr[1, 1]
+    A = np.diag([Lx, Ly]) @ np.linalg.inv(hr)     # real space -> orthogonal reference frame
+    stretch = float(np.linalg.norm(A, 2))
+    cut = 2.0 * float(radii.max()) + skin
+    if cut * stretch >= 0.5 * min(Lx, Ly):
+        raise InputError(f"suspension: the box ({Lx:.3g} x {Ly:.3g}) is too small for the "
+                         f"neighbour search (cut {cut:.3g}); use more discs or a smaller skin")
+    X = sr * np.array([Lx, Ly])
+    tree = cKDTree(X, boxsize=[Lx, Ly])
+    pairs = tree.query_pairs(cut * stretch * (1 + 1e-12), output_type="ndarray")
+    i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    sw = np.where(i > j)                       # i < j
+    i[sw], j[sw] = j[sw], i[sw]
+    ds = sr[j] - sr[i]
+    nr = -np.rint(ds)
+    r = (ds + nr) @ hr.T
+    dist = np.sqrt(np.einsum("ad,ad->a", r, r))
+    gap = dist - radii[i] - radii[j]
+    keep = gap < skin
+    i, j, nr, r, dist, gap = i[keep], j[keep], nr[keep], r[keep], dist[keep], gap[keep]
+    order = np.lexsort((j, i))
+    i, j, nr, r, dist, gap = i[order], j[order], nr[order], r[order], dist[order], gap[order]
+    # shift in the state's frame: s_j + n - s_i = U (sr_j + nr - sr_i) with sr = U^-1 s - off
+    shift = np.rint((nr + off[i] - off[j]) @ U.T).astype(np.int64)
+    n = r / dist[:, None]
+    b = np.einsum("ad,ad->a", n, r @ E.T)
+    return Candidates(i, j, shift, r, dist, n, gap, b)
+
+
+def min_gap(state: State, skin: float = DEFAULT_SKIN) -> float:
+    """Smallest gap |r| - (R_i + R_j) over all pairs within the skin (inf if none)."""
+    c = find_candidates(state.s, state.radii, state.h, state.E, skin)
+    return float(c.gap.min()) if len(c) else math.inf
+
+
+# =========================================================================== operators
+
+def rigidity(c: Candidates, n_part: int) -> sp.csr_matrix:
+    """S_C (Nc x d N): -n at i, +n at j (DESIGN §2)."""
+    nc, d = len(c), c.n.shape[1]
+    rows = np.repeat(np.arange(nc), 2 * d)
+    cols = np.concatenate([d * c.i[:, None] + np.arange(d), d * c.j[:, None] + np.arange(d)], axis=1)
+    vals = np.concatenate([-c.n, c.n], axis=1)
+    return sp.csr_matrix((vals.ravel(), (rows, cols.ravel())), shape=(nc, d * n_part))
+
+
+# =========================================================================== LCP
+
+@dataclass
+class LCPInfo:
+    iterations: int = 0        # outer iterations (solves)
+    factorizations: int = 0
+    singular: int = 0          # factorisations of a singular N_AA (self-stress), regularised
+    added: int = 0
+    removed: int = 0
+    min_w: float = 0.0         # min over candidates of w (>= -tol)
+    comp: float = 0.0          # max |f_a w_a|
+    factor_time: float = 0.0
+    mode: str = "block"
+
+
+class LCPFailure(RuntimeError):
+    pass
+
+
+def solve_active(N: sp.csr_matrix, q: np.ndarray, A: np.ndarray, info: LCPInfo,
+                 eps: float = 1e-12) -> np.ndarray:
+    """Solve N_AA x = -q_A (A: boolean mask); a singular N_AA is shifted by eps ||N|| I."""
+    idx = np.flatnonzero(A)
+    x = np.zeros(q.shape[0])
+    if idx.size == 0:
+        return x
+    M = N[idx][:, idx].tocsc()
+    rhs = -q[idx]
+    t0 = time.perf_counter()
+    info.factorizations += 1
+    singular = False
+    try:
+        lu = spla.splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options=dict(SymmetricMode=True))
+        piv = np.abs(lu.U.diagonal())
+        singular = piv.min() <= 1e-13 * piv.max()
+        if not singular:
+            y = lu.solve(rhs)
+            res = np.linalg.norm(M @ y - rhs) / max(np.linalg.norm(rhs), 1e-300)
+            singular = not np.isfinite(res) or res > 1e-8
+    except RuntimeError:                       # "Factor is exactly singular"
+        singular = True
+    if singular:
+        info.singular += 1
+        shift = eps * 2.0 * (1 + np.max(np.abs(M).sum(axis=1)))
+        lu = spla.splu((M + shift * sp.identity(idx.size, format="csc")).tocsc(),
+                       permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options=dict(SymmetricMode=True))
+        y = lu.solve(rhs)
+    info.factor_time += time.perf_counter() - t0
+    x[idx] = y
+    return x
+
+
+def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
+              tol: float | None = None, max_iter: int = 500) -> tuple[np.ndarray, LCPInfo]:
+    """f >= 0, w = S S^T f + q >= -tol, f . w = 0 by a warm-started primal active set.
+
+    Phase 1: solve on the warm set, drop contacts whose force comes out negative, repeat.
+    Phase 2 (Lawson-Hanson): add violated constraints (w < -tol) -- all at once ("block")
+    while that makes progress, one at a time (the most violated) after 50 iterations --
+    and keep f feasible by the ratio test when a force would become negative.
+    """
+    nc = q.shape[0]
+    info = LCPInfo()
+    if nc == 0:
+        return np.zeros(0), info
+    if tol is None:
+        tol = 1e-10 * max(1.0, float(np.max(np.abs(q[q < 0])) if np.any(q < 0) else 1.0))
+    N = (S @ S.T).tocsr()
+    A = np.zeros(nc, bool) if warm is None else warm.copy()
+    f = np.zeros(nc)
+    # phase 1
+    while A.any():
+        info.iterations += 1
+        z = solve_active(N, q, A, info)
+        neg = A & (z <= 0)
+        if not neg.any():
+            f = z
+            break
+        A &= ~neg
+        info.removed += int(neg.sum())
+    # phase 2
+    for it in range(max_iter):
+        w = N @ f + q
+        viol = ~A & (w < -tol)
+        if not viol.any():
+            break
+        if it < 50:
+            A |= viol
+            info.added += int(viol.sum())
+        else:
+            info.mode = "single"
+            k = int(np.argmin(np.where(viol, w, np.inf)))
+            A[k] = True
+            info.added += 1
+        while True:
+            info.iterations += 1
+            z = solve_active(N, q, A, info)
+            neg = A & (z <= 0)
+            if not neg.any():
+                f = z
+                break
+            # ratio test from the feasible f towards z
+            fa, za = f[neg], z[neg]
+            ratio = np.where(fa > 0, fa / (fa - za), 0.0)
+            alpha = float(ratio.min())
+            f = f + alpha * (z - f)
+            drop = np.zeros(nc, bool)
+            drop[np.flatnonzero(neg)[ratio <= alpha * (1 + 1e-12)]] = True   # blocking
+            f[drop] = 0.0
+            np.maximum(f, 0.0, out=f)
+            A &= ~drop
+            info.removed += int(drop.sum())
+    else:
+        raise LCPFailure(f"contact LCP: no convergence in {max_iter} active-set iterations "
+                         f"({int(A.sum())} active of {nc})")
+    w = N @ f + q
+    info.min_w = float(w.min())
+    info.comp = float(np.max(np.abs(f * w))) if nc else 0.0
+    return f, info
+
+
+# =========================================================================== dynamics
+
+@dataclass
+class StepStats:
+    gamma: float
+    dgamma: float
+    sigma: float            # |V_na|^2 / Omega
+    sigma_fb: float         # -<f|b> / Omega
+    gap_work: float         # -<f|h>/dg / Omega (nonzero when a collision closes a gap)
+    pressure: float         # sum f |r| / (d Omega)
+    n_candidates: int
+    n_active: int
+    n_new: int              # contacts that start carrying force in this step (collisions)
+    overlap: float          # largest overlap among the candidates at the start of the step
+    lcp: LCPInfo
+    times: dict = field(default_factory=dict)
+
+
+class Suspension:
+    """Stepper for a hard-disc suspension state (radii set, no bonds)."""
+
+    def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
+                 dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12):
+        if state.radii is None:
+            raise InputError("suspension: the state has no radii")
+        if not np.any(state.E[0, 1]) or np.any(state.E @ state.E):
+            raise InputError("suspension: only simple shear (E = [[0,1],[0,0]]) is implemented")
+        self.state = state
+        self.skin, self.c, self.dmax, self.dg_max, self.dg_min = skin, c, dmax, dg_max, dg_min
+        self.omega = state.volume
+        self.max_overlap = max(0.0, -min_gap(state))
+        self.sigma = 0.0
+        self.vmax = 0.0
+        self.steps = 0
+        self.collisions = 0
+        self.singular_events = 0
+        self._active_keys = np.zeros(0, np.int64)
+        self.last_f = None
+        self.last_c = None
+
+    def _keys(self, c: Candidates) -> np.ndarray:
+        return c.i * self.state.n + c.j
+
+    def forces(self, c: Candidates, dg: float):
+        S = rigidity(c, self.state.n)
+        q = c.b + c.gap / dg
+        warm = np.isin(self._keys(c), self._active_keys)
+        f, info = solve_lcp(S, q, warm)
+        V = (S.T @ f).reshape(self.state.n, self.state.d)
+        return S, q, f, V, info, warm
+
+    def step(self) -> StepStats:
+        st = self.state
+        t0 = time.perf_counter()
+        h = st.h
+        c = find_candidates(st.s, st.radii, h, st.E, self.skin)
+        t1 = time.perf_counter()
+        overlap = float(max(0.0, -c.gap.min())) if len(c) else 0.0
+        self.max_overlap = max(self.max_overlap, overlap)
+        dg = self.dg_max
+        if self.sigma > 0:
+            dg = min(dg, self.c / self.sigma)
+        if self.vmax > 0:
+            dg = min(dg, self.dmax / self.vmax)
+        sig_max = 2.0 * float(st.radii.max())
+        while True:
+            S, q, f, V, info, warm = self.forces(c, dg)
+            vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
+            if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
+                break
+            dg *= 0.5
+            if dg < self.dg_min:
+                raise RuntimeError(f"suspension: step size fell below {self.dg_min:g} "
+                                   f"(max |V_na| = {vmax:.3g})")
+        t2 = time.perf_counter()
+        h_new = cell_at(st.h0, st.E, st.gamma + dg)
+        st.s = st.s + dg * V @ np.linalg.inv(h_new).T
+        st.s -= np.floor(st.s)
+        st.gamma += dg
+        active = f > 0
+        self._active_keys = self._keys(c)[active]
+        n_new = int(np.count_nonzero(active & ~warm))
+        self.collisions += n_new
+        self.singular_events += info.singular
+        omega = self.omega
+        sigma = float(np.einsum("id,id->", V, V)) / omega
+        stats = StepStats(st.gamma, dg, sigma, -float(f @ c.b) / omega,
+                          -float(f @ c.gap) / dg / omega,
+                          float(f @ c.dist) / (st.d * omega), len(c), int(active.sum()),
+                          n_new, overlap, info,
+                          dict(search=t1 - t0, lcp=t2 - t1, update=time.perf_counter() - t2))
+        self.sigma, self.vmax = sigma, vmax
+        self.steps += 1
+        self.last_f, self.last_c, self.last_V = f, c, V
+        return stats
+
+    def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
+        """Step until ``strain`` more strain has been applied; returns the per-step stats."""
+        out = []
+        target = self.state.gamma + strain
+        for _ in range(max_steps):
+            if self.state.gamma >= target:
+                break
+            keep = self.dg_max
+            self.dg_max = min(self.dg_max, max(target - self.state.gamma, self.dg_min))
+            out.append(self.step())
+            self.dg_max = keep
+            if callback is not None:
+                callback(self, out[-1])
+        return out
+
+
+# =========================================================================== observables
+
+def coordination(c: Candidates, f: np.ndarray, n_part: int, d: int = 2,
+                 rel: float = 1e-12) -> dict:
+    """z of the force-bearing contacts (f > rel max f) with rattlers (< d + 1 force-bearing
+    contacts) removed iteratively."""
+    from .models.packing import remove_rattlers
+    fb = f > rel * (f.max() if f.size else 0.0)
+    i, j = c.i[fb], c.j[fb]
+    rattler, keep = remove_rattlers(n_part, i, j, d)
+    n_nr = int(n_part - rattler.sum())
+    nc = int(keep.sum())
+    return dict(z=2.0 * nc / n_nr if n_nr else 0.0, n_contacts=nc, n_rattlers=int(rattler.sum()))
+
+
+def observables(susp: Suspension, stats: StepStats) -> dict:
+    z = coordination(susp.last_c, susp.last_f, susp.state.n, susp.state.d)
+    return dict(gamma=stats.gamma, sigma=stats.sigma, sigma_fb=stats.sigma_fb,
+                pressure=stats.pressure,
+                mu=stats.sigma / stats.pressure if stats.pressure > 0 else math.nan,
+                **z, max_overlap=susp.max_overlap, collisions=susp.collisions)

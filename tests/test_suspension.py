@@ -1,0 +1,169 @@
+"""Hard-disc suspension (parflow.suspension): initial states, Lees-Edwards neighbour search,
+the contact LCP against an independent NNLS, no overlap, sigma identity, bad input, MPI."""
+import numpy as np
+import pytest
+from scipy.optimize import nnls
+
+from parflow import suspension as su
+from parflow.state import InputError
+
+
+@pytest.fixture(scope="module")
+def dense():
+    return su.make_suspension(64, 0.82, seed=3)
+
+
+def brute_pairs(state, skin):
+    """All pairs with gap < skin, by trying every image shift in [-3, 3]^2."""
+    s, h, R = state.s, state.h, state.radii
+    out = {}
+    for a in range(-3, 4):
+        for bb in range(-3, 4):
+            ds = s[None, :, :] - s[:, None, :] + np.array([a, bb])
+            r = ds @ h.T
+            dist = np.sqrt((r ** 2).sum(-1))
+            gap = dist - R[:, None] - R[None, :]
+            ii, jj = np.nonzero((gap < skin) & (np.arange(len(s))[:, None] < np.arange(len(s))[None, :]))
+            for i, j in zip(ii, jj):
+                out[(i, j)] = gap[i, j]
+    return out
+
+
+def test_initial_state(dense):
+    assert dense.n == 64
+    assert abs(dense.meta["phi"] - 0.82) < 1e-12
+    assert su.min_gap(dense) > 0
+    R = np.unique(dense.radii)
+    assert np.allclose(R, [0.5, 0.7]) and np.sum(dense.radii == 0.5) == 32
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.37, 0.5, 0.83, 5.61, -2.4])
+def test_candidates_match_brute_force(dense, gamma):
+    st = dense.copy()
+    st.gamma = gamma
+    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.3)
+    ref = brute_pairs(st, 0.3)
+    assert len(c) == len(ref)
+    for i, j, g in zip(c.i, c.j, c.gap):
+        assert abs(ref[(i, j)] - g) < 1e-12
+    # r from the returned shifts in the state's frame
+    r = (st.s[c.j] + c.shift - st.s[c.i]) @ st.h.T
+    assert np.allclose(r, c.r, atol=1e-12)
+    assert np.allclose(c.b, c.n[:, 0] * c.r[:, 1])
+
+
+@pytest.mark.parametrize("gamma", [0.3, 0.7, 2.3, -1.6])
+def test_pair_across_lees_edwards_boundary(gamma):
+    L = 10.0
+    X0 = np.array([5.0, 9.5])
+    r = 1.05 * np.array([0.6, 0.8])
+    X1 = X0 + r - np.array([gamma * L, L])          # its image across the top is at X0 + r
+    st = su.from_configuration(np.array([X0, X1]), [0.5, 0.5], [L, L], gamma=gamma)
+    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.1)
+    assert len(c) == 1
+    assert abs(c.gap[0] - 0.05) < 1e-12
+    assert np.allclose(c.r[0], r, atol=1e-12)
+    assert abs(c.b[0] - 0.6 * r[1]) < 1e-12          # b = n_x r_y, from r, not raw coordinates
+
+
+def check_lcp(S, q, f, tol=1e-9):
+    w = S @ (S.T @ f) + q
+    assert np.all(f >= 0)
+    assert w.min() >= -tol * max(1, np.abs(q).max())
+    assert np.max(np.abs(f * w)) <= tol * max(1, np.abs(q).max() * max(1, f.max()))
+
+
+def test_lcp_matches_nnls():
+    st = su.make_suspension(48, 0.6, seed=5)
+    rng = np.random.default_rng(0)
+    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.4)
+    S = su.rigidity(c, st.n)
+    assert np.linalg.matrix_rank(S.toarray()) == len(c)    # q is in range(S)
+    for dg in (1e-1, 1e-2, 1e-3):
+        q = c.b + c.gap / dg
+        f, info = su.solve_lcp(S, q)
+        check_lcp(S, q, f)
+        v = np.linalg.lstsq(S.toarray(), q, rcond=None)[0]      # S v = q
+        f_ref, _ = nnls(S.T.toarray(), -v)                      # min |S^T f + v|, f >= 0
+        assert np.allclose(f, f_ref, atol=1e-9 * max(1, f_ref.max()))
+        # a random warm start reaches the same solution
+        f2, _ = su.solve_lcp(S, q, warm=rng.random(len(c)) < 0.5)
+        assert np.allclose(f2, f, atol=1e-9 * max(1, f.max()))
+
+
+def test_lcp_dense_complementarity(dense):
+    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    S = su.rigidity(c, dense.n)
+    assert len(c) > 2 * dense.n                        # N_C is singular
+    q = c.b + c.gap / 1e-3
+    f, info = su.solve_lcp(S, q)
+    check_lcp(S, q, f)
+    assert info.min_w >= -1e-9
+
+
+def test_singular_active_set_is_handled():
+    """Duplicated contacts: N_AA is exactly singular (a self-stress); no crash, a valid f."""
+    st = su.make_suspension(32, 0.7, seed=2)
+    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.05)
+    S1 = su.rigidity(c, st.n).toarray()
+    S = np.vstack([S1, S1[:3]])
+    import scipy.sparse as sp
+    S = sp.csr_matrix(S)
+    q = -np.abs(S @ np.random.default_rng(1).standard_normal(S.shape[1])) - 0.1
+    f, info = su.solve_lcp(S, q, warm=np.ones(S.shape[0], bool))
+    assert info.singular >= 1
+    check_lcp(S, q, f, tol=1e-7)
+
+
+def test_steps_no_overlap_and_sigma_identity(dense):
+    st = dense.copy()
+    sim = su.Suspension(st)
+    stats = sim.run(0.15)
+    assert st.gamma >= 0.15 - 1e-12
+    assert len(stats) > 10
+    assert sim.max_overlap <= 1e-9
+    assert su.min_gap(st) >= -1e-9
+    for s in stats:
+        # |V_na|^2 = -<f|b> - <f|h>/dg (complementarity), to solver accuracy
+        assert abs(s.sigma - (s.sigma_fb + s.gap_work)) <= 1e-8 * max(1, s.sigma)
+        assert s.lcp.min_w >= -1e-9
+    obs = su.observables(sim, stats[-1])
+    assert obs["sigma"] > 0 and obs["pressure"] > 0 and np.isfinite(obs["mu"])
+    assert sim.collisions > 0
+
+
+def test_restart_same_trajectory(dense):
+    a = su.Suspension(dense.copy())
+    a.run(0.03)
+    b = su.Suspension(dense.copy())
+    b.run(0.03)
+    assert np.array_equal(a.state.s, b.state.s) and a.state.gamma == b.state.gamma
+
+
+@pytest.mark.parametrize("kw, msg", [
+    (dict(phi=0.843), "jamming"), (dict(phi=0.9), "jamming"), (dict(phi=-0.1), "phi"),
+    (dict(phi=0.8, ratio=0.0), "ratio"), (dict(phi=0.8, ratio=-1.4), "ratio"),
+    (dict(phi=0.8, composition=(0.5, 0.6)), "sum to 1"),
+    (dict(phi=0.8, composition=(1.2, -0.2)), ">= 0"),
+])
+def test_bad_input(kw, msg):
+    with pytest.raises(InputError, match=msg):
+        su.make_suspension(64, **kw)
+
+
+def test_overlapping_configuration_refused():
+    with pytest.raises(InputError, match="overlapping"):
+        su.from_configuration([[1.0, 1.0], [1.5, 1.0], [5, 5]], [0.5, 0.5, 0.5], [10, 10])
+    with pytest.raises(InputError, match="> 0"):
+        su.from_configuration([[1.0, 1.0], [5, 5]], [0.5, 0.0], [10, 10])
+    with pytest.raises(InputError, match="jamming"):
+        su.from_configuration([[1.0, 1.0]], [0.5], [0.9, 1.0])
+
+
+def test_ranks_agree(comm, dense):
+    sim = su.Suspension(dense.copy())
+    stats = sim.run(0.02)
+    mine = np.concatenate([sim.state.s.ravel(), [s.sigma for s in stats]])
+    everyone = comm.allgather(mine)
+    for other in everyone:
+        assert np.array_equal(other, mine)
