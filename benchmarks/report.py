@@ -78,6 +78,20 @@ def chain_section(d):
     return out
 
 
+def spectrum_section(d):
+    out = ["## ω_min and the lowest eigenpairs at Nc ≈ 1e6 (`bench_spectrum.py`)", "",
+           "Target: 6 lowest pairs at Nc ≈ 1e6 in ≤ 10 s on 2 ranks.  SLEPc Krylov–Schur, "
+           "shift-and-invert at 0 on a Cholesky factor of N; in a run the factor is the force "
+           "solver's (already computed for the step), `own` means a factorisation from scratch.", "",
+           "| Nc | k | ranks | factorisation | factor | seconds | restarts | ω_min |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in d["records"]:
+        out.append(f"| {r['Nc']:,} | {r['k']} | {r['ranks']} | {r['parallel']} | {r.get('factor', 'own')} | "
+                   f"{r['seconds']:.1f} | {r['iterations']} | {r['omega'][0]:.6g} |")
+    out += ["", f"Measured {d.get('date', '?')}; load averages per record in the JSON.", ""]
+    return out
+
+
 def packing_section(d):
     out = ["## Packings and networks (`bench_packing.py`)", "",
            "| N | kernel | packing + network (s) | iterations | bonds | z | peak RSS (MB) |",
@@ -97,7 +111,8 @@ def main():
              "cores, Debian 12, PETSc 3.18 / CHOLMOD / MUMPS from Debian.  Numbers taken while "
              "other jobs shared the cores say so in their load average.", ""]
     for name, fn in (("force", force_section), ("chain_fig2", chain_section),
-                     ("tradeoff", tradeoff_section), ("packing", packing_section)):
+                     ("tradeoff", tradeoff_section), ("spectrum", spectrum_section),
+                     ("packing", packing_section)):
         d = load(name)
         if d is not None:
             lines += fn(d)

@@ -144,7 +144,9 @@ class Run:
     def _omega_min(self, system) -> tuple[float, np.ndarray]:
         from .spectrum import LowSpectrum, omega_from_lambda
         if self._spec is None:
-            self._spec = LowSpectrum(system.ops.N, k=self.obs_cfg["n_eigs"], parallel=system.parallel)
+            # shift-and-invert at 0 on the force solver's factor of N (already up to date)
+            self._spec = LowSpectrum(system.ops.N, k=self.obs_cfg["n_eigs"], parallel=system.parallel,
+                                     ksp=system.tau_solver.ksp)
         lam, _ = self._spec.solve()
         return float(omega_from_lambda(lam[:1])[0]), omega_from_lambda(lam)
 

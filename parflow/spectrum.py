@@ -23,7 +23,10 @@ class LowSpectrum:
     """k lowest eigenpairs of a symmetric positive (semi-)definite PETSc Mat."""
 
     def __init__(self, A, k: int = 1, prefix: str = "spec_", tol: float = 1e-10,
-                 max_it: int = 500, parallel: str = "mumps"):
+                 max_it: int = 500, parallel: str = "mumps", ksp=None):
+        """``ksp``: an existing KSP whose operator is ``A`` with a direct factor (the force
+        solver's): the shift-and-invert at target 0 then reuses its factorisation instead of
+        factorising A again.  Otherwise the ST gets its own KSP (prefix ``spec_st_``)."""
         from petsc4py import PETSc
         from slepc4py import SLEPc
         if k < 1:
@@ -44,7 +47,10 @@ class LowSpectrum:
         eps.setTolerances(tol, max_it)
         st = eps.getST()
         st.setType(SLEPc.ST.Type.SINVERT)
-        configure_cholesky(st.getKSP(), prefix + "st_", parallel)
+        if ksp is not None:
+            st.setKSP(ksp)
+        else:
+            configure_cholesky(st.getKSP(), prefix + "st_", parallel)
         eps.setFromOptions()
         self.eps = eps
 

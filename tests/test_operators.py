@@ -123,17 +123,22 @@ def test_bad_bonds_rejected():
         Bonds([0], [1], [[0, 0]], [-1.0]).validate(3)
 
 
-def test_low_spectrum_follows_the_current_values_of_N(comm):
-    """One LowSpectrum object reused while N's values change (as in a run)."""
+@pytest.mark.parametrize("shared", [False, True])
+def test_low_spectrum_follows_the_current_values_of_N(comm, shared):
+    """One LowSpectrum object reused while N's values change (as in a run), with its own
+    factor or sharing the force solver's; the force solve still works afterwards."""
     from parflow.spectrum import LowSpectrum
     st = random_bonded_state(n=40, extra=8, flow="shear", gamma=0.0, seed=9)
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
-    spec = LowSpectrum(sysm.ops.N, k=2)
+    spec = LowSpectrum(sysm.ops.N, k=2, ksp=sysm.tau_solver.ksp if shared else None)
     for gamma in (0.0, 0.5, 1.0):
         st.gamma = gamma
-        sysm.evaluate(st.s, gamma)
-        _, Nd, _, _, _ = dense_operators(st)
+        F = sysm.evaluate(st.s, gamma)
+        _, Nd, b, _, _ = dense_operators(st)
         vals, _ = spec.solve()
         np.testing.assert_allclose(vals, np.linalg.eigvalsh(Nd)[:2], rtol=1e-8)
+        np.testing.assert_allclose(F.tau, np.linalg.solve(Nd, -b), rtol=1e-9, atol=1e-12)
+        F2 = sysm.evaluate(st.s, gamma)
+        np.testing.assert_allclose(F2.tau, F.tau, rtol=1e-12, atol=1e-14)
     spec.destroy()
     sysm.destroy()
