@@ -258,50 +258,112 @@ class LCPFailure(RuntimeError):
     pass
 
 
+FACTORS = ("cholmod", "superlu")
+
+
+def _petsc():
+    from petsc4py import PETSc
+    return PETSc
+
+
+def _cholmod_solve(M: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray | None:
+    """x = M^-1 rhs by CHOLMOD through PETSc on COMM_SELF (every rank the same, redundantly);
+    None if the factorisation breaks down (M not positive definite to working precision)."""
+    PETSc = _petsc()
+    it = PETSc.IntType
+    A = PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr.astype(it), M.indices.astype(it), M.data),
+                              comm=PETSc.COMM_SELF)
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    ksp.setOptionsPrefix("contact_")
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType(PETSc.PC.Type.CHOLESKY)
+    pc.setFactorSolverType("cholmod")
+    ksp.setOperators(A)
+    ksp.setFromOptions()
+    x, b = A.createVecs()
+    b.setArray(rhs)
+    try:
+        ksp.solve(b, x)
+        ok = ksp.getConvergedReason() >= 0
+        y = x.getArray().copy()
+    except PETSc.Error:
+        ok, y = False, None
+    for o in (ksp, A, x, b):
+        o.destroy()
+    return y if ok else None
+
+
+def _superlu_solve(M: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray | None:
+    try:
+        lu = spla.splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options=dict(SymmetricMode=True))
+    except RuntimeError:                       # "Factor is exactly singular"
+        return None
+    piv = np.abs(lu.U.diagonal())
+    if piv.min() <= 1e-13 * piv.max():
+        return None
+    return lu.solve(rhs)
+
+
 def solve_active(N: sp.csr_matrix, q: np.ndarray, A: np.ndarray, info: LCPInfo,
-                 eps: float = 1e-12) -> np.ndarray:
-    """Solve N_AA x = -q_A (A: boolean mask); a singular N_AA is shifted by eps ||N|| I."""
+                 eps: float = 1e-12, factor: str = "cholmod") -> np.ndarray:
+    """Solve N_AA x = -q_A (A: boolean mask).
+
+    A singular N_AA (a state of self-stress among the active contacts: the factorisation
+    breaks down, or the residual / the size of x says it is singular to working precision)
+    is shifted by eps ||N_AA||_inf I and solved again; the event is counted in
+    ``info.singular``.  The shifted solve has components ~ 1/eps along the self-stress:
+    negative ones make the active set drop a redundant contact; an all-positive
+    self-stress (a jammed cluster) shows up as a huge stress and shrinks the step.
+    """
     idx = np.flatnonzero(A)
     x = np.zeros(q.shape[0])
     if idx.size == 0:
         return x
-    M = N[idx][:, idx].tocsc()
+    M = N[idx][:, idx].tocsr()
     rhs = -q[idx]
     t0 = time.perf_counter()
     info.factorizations += 1
-    singular = False
-    try:
-        lu = spla.splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options=dict(SymmetricMode=True))
-        piv = np.abs(lu.U.diagonal())
-        singular = piv.min() <= 1e-13 * piv.max()
-        if not singular:
-            y = lu.solve(rhs)
-            res = np.linalg.norm(M @ y - rhs) / max(np.linalg.norm(rhs), 1e-300)
-            singular = not np.isfinite(res) or res > 1e-8
-    except RuntimeError:                       # "Factor is exactly singular"
-        singular = True
-    if singular:
+    solve = _cholmod_solve if factor == "cholmod" else _superlu_solve
+    y = solve(M, rhs)
+    norm = float(np.max(np.abs(M).sum(axis=1)))
+    if y is not None:
+        nr = float(np.linalg.norm(rhs))
+        res = float(np.linalg.norm(M @ y - rhs))
+        ny = float(np.linalg.norm(y))
+        if not (np.isfinite(res) and res <= 1e-8 * max(nr, 1e-300)
+                and ny * norm * 1e-12 <= max(nr, 1e-300)):
+            y = None
+    if y is None:
         info.singular += 1
-        shift = eps * 2.0 * (1 + np.max(np.abs(M).sum(axis=1)))
-        lu = spla.splu((M + shift * sp.identity(idx.size, format="csc")).tocsc(),
-                       permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options=dict(SymmetricMode=True))
-        y = lu.solve(rhs)
+        shift = eps * max(norm, 1.0)
+        Ms = (M + shift * sp.identity(idx.size, format="csr")).tocsr()
+        y = solve(Ms, rhs)
+        if y is None:
+            y = _superlu_solve(Ms, rhs)
+        if y is None:
+            raise LCPFailure(f"contact LCP: the shifted active N ({idx.size} contacts) "
+                             f"could not be factored")
     info.factor_time += time.perf_counter() - t0
     x[idx] = y
     return x
 
 
 def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
-              tol: float | None = None, max_iter: int = 500) -> tuple[np.ndarray, LCPInfo]:
-    """f >= 0, w = S S^T f + q >= -tol, f . w = 0 by a warm-started primal active set.
+              tol: float | None = None, max_iter: int = 500, bpp_max: int = 30,
+              bpp_patience: int = 3, factor: str = "cholmod") -> tuple[np.ndarray, LCPInfo]:
+    """f >= 0, w = S S^T f + q >= -tol, f . w = 0 by a warm-started active set.
+
+    Phase 0: block principal pivoting from the warm set (``bpp_max`` = 0 skips it).
 
     Phase 1: solve on the warm set, drop contacts whose force comes out negative, repeat.
     Phase 2 (Lawson-Hanson): add violated constraints (w < -tol) -- all at once ("block")
     while that makes progress, one at a time (the most violated) after 50 iterations --
     and keep f feasible by the ratio test when a force would become negative.
     """
+    if factor not in FACTORS:
+        raise InputError(f"suspension: factor must be one of {FACTORS}, got {factor!r}")
     nc = q.shape[0]
     info = LCPInfo()
     if nc == 0:
@@ -311,10 +373,36 @@ def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
     N = (S @ S.T).tocsr()
     A = np.zeros(nc, bool) if warm is None else warm.copy()
     f = np.zeros(nc)
+    # phase 0: block principal pivoting (Judice & Pires) from the warm set; it exchanges
+    # every infeasible index at once and usually ends in 1-3 solves, but it can cycle:
+    # after ``bpp_patience`` iterations without fewer infeasibilities, fall back.
+    best, stale = np.inf, 0
+    for _ in range(bpp_max):
+        info.iterations += 1
+        z = solve_active(N, q, A, info, factor=factor)
+        w = N @ z + q
+        F = A & (z < 0)
+        G = ~A & (w < -tol)
+        n_inf = int(F.sum() + G.sum())
+        if n_inf == 0:
+            np.maximum(z, 0.0, out=z)
+            info.mode = "bpp"
+            info.min_w = float(w.min())
+            info.comp = float(np.max(np.abs(z * w)))
+            return z, info
+        if n_inf < best:
+            best, stale = n_inf, 0
+        else:
+            stale += 1
+            if stale >= bpp_patience:
+                break
+        info.added += int(G.sum())
+        info.removed += int(F.sum())
+        A = (A & ~F) | G
     # phase 1
     while A.any():
         info.iterations += 1
-        z = solve_active(N, q, A, info)
+        z = solve_active(N, q, A, info, factor=factor)
         neg = A & (z <= 0)
         if not neg.any():
             f = z
@@ -337,7 +425,7 @@ def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
             info.added += 1
         while True:
             info.iterations += 1
-            z = solve_active(N, q, A, info)
+            z = solve_active(N, q, A, info, factor=factor)
             neg = A & (z <= 0)
             if not neg.any():
                 f = z
@@ -384,13 +472,17 @@ class Suspension:
     """Stepper for a hard-disc suspension state (radii set, no bonds)."""
 
     def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
-                 dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12):
+                 dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12,
+                 factor: str = "cholmod"):
         if state.radii is None:
             raise InputError("suspension: the state has no radii")
         if not np.any(state.E[0, 1]) or np.any(state.E @ state.E):
             raise InputError("suspension: only simple shear (E = [[0,1],[0,0]]) is implemented")
         self.state = state
         self.skin, self.c, self.dmax, self.dg_max, self.dg_min = skin, c, dmax, dg_max, dg_min
+        if factor not in FACTORS:
+            raise InputError(f"suspension: factor must be one of {FACTORS}, got {factor!r}")
+        self.factor = factor
         self.omega = state.volume
         self.max_overlap = max(0.0, -min_gap(state))
         self.sigma = 0.0
@@ -409,7 +501,7 @@ class Suspension:
         S = rigidity(c, self.state.n)
         q = c.b + c.gap / dg
         warm = np.isin(self._keys(c), self._active_keys)
-        f, info = solve_lcp(S, q, warm)
+        f, info = solve_lcp(S, q, warm, factor=self.factor)
         V = (S.T @ f).reshape(self.state.n, self.state.d)
         return S, q, f, V, info, warm
 

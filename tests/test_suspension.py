@@ -167,3 +167,14 @@ def test_ranks_agree(comm, dense):
     everyone = comm.allgather(mine)
     for other in everyone:
         assert np.array_equal(other, mine)
+
+
+def test_factor_backends_agree(dense):
+    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    S = su.rigidity(c, dense.n)
+    q = c.b + c.gap / 1e-3
+    f1, i1 = su.solve_lcp(S, q, factor="cholmod")
+    f2, i2 = su.solve_lcp(S, q, factor="superlu")
+    assert np.allclose(f1, f2, atol=1e-9 * max(1, f1.max()))
+    with pytest.raises(InputError, match="factor"):
+        su.solve_lcp(S, q, factor="lu")
