@@ -178,3 +178,13 @@ def test_factor_backends_agree(dense):
     assert np.allclose(f1, f2, atol=1e-9 * max(1, f1.max()))
     with pytest.raises(InputError, match="factor"):
         su.solve_lcp(S, q, factor="lu")
+
+
+def test_cli(tmp_path, capsys, comm):
+    out = tmp_path / f"run{comm.rank}.npz"
+    assert su.main(["--N", "64", "--phi", "0.9", "--out", str(out)]) == 2
+    assert "jamming" in capsys.readouterr().err and not out.exists()
+    assert su.main(["--N", "64", "--phi", "0.8", "--strain", "0.02", "--out", str(out)]) == 0
+    if comm.rank == 0:
+        data = np.load(out)
+        assert data["series"].shape[1] == 12 and data["series"][-1, 0] >= 0.02 - 1e-12
