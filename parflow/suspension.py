@@ -92,12 +92,14 @@ def check_phi(phi) -> None:
 
 def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_RATIO,
                     composition=(0.5, 0.5), inflate: float = 1e-6,
-                    max_iter: int = 200_000) -> State:
+                    max_iter: int = 200_000, tries: int = 5) -> State:
     """Non-overlapping binary discs at packing fraction ``phi`` < phi_J in a square box.
 
     Uniform random positions, then the soft-disc FIRE minimiser of ``models.packing`` with
     radii inflated by (1 + ``inflate``) until no (inflated) pair overlaps: the true discs
-    then have every gap >= inflate * (R_i + R_j) > 0, verified exactly afterwards.
+    then have every gap >= inflate * (R_i + R_j) > 0, verified exactly afterwards.  If the
+    minimiser ends in a jammed state (overlaps left: small N jams below phi_J), new random
+    positions are drawn, up to ``tries`` times.
     """
     from .models import packing as pk
     check_phi(phi)
@@ -111,18 +113,22 @@ def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_
     pl = pk._PairList(radii * (1.0 + inflate), box, 0.4, "auto")
     if L <= 2.0 * pl.cut:
         raise InputError(f"suspension: N = {n} gives a box of side {L:.3g}: too small, use more discs")
-    X = np.ascontiguousarray((rng.random((n, 2)) * box).T)
-    X, info = pk.fire_minimize(X, pl, 1e-12, max_iter=max_iter)
-    X = pl.build(X)
-    _, r = pl.pair_vectors(X)
-    if np.any(r < radii[pl.i] + radii[pl.j]) or not info["converged"]:
-        raise RuntimeError(f"suspension: the push-off did not remove every overlap in "
-                           f"{info['iterations']} FIRE iterations (phi = {phi} too close to jamming?)")
+    for attempt in range(tries):
+        X = np.ascontiguousarray((rng.random((n, 2)) * box).T)
+        X, info = pk.fire_minimize(X, pl, 1e-12, max_iter=max_iter)
+        X = pl.build(X)
+        _, r = pl.pair_vectors(X)
+        if info["converged"] and not np.any(r < radii[pl.i] + radii[pl.j]):
+            break
+    else:
+        raise InputError(f"suspension: no unjammed configuration of N = {n} discs at phi = {phi} "
+                         f"in {tries} tries (small systems jam below phi_J ~ {PHI_J}: "
+                         f"use more discs or a lower phi)")
     s = pk._wrap01(X.T / box)
     h0 = np.diag(box)
     state = State(s, h0, velocity_gradient("shear", 2), 0.0, None, radii)
     state.meta.update(model="suspension", phi=float(np.pi * np.sum(radii ** 2) / L ** 2),
-                      seed=seed, fire_iterations=info["iterations"])
+                      seed=seed, fire_iterations=info["iterations"], attempts=attempt + 1)
     gap = min_gap(state)
     if gap < 0:
         raise RuntimeError(f"suspension: initial state overlaps by {-gap:.3g}")
@@ -462,7 +468,8 @@ class StepStats:
     pressure: float         # sum f |r| / (d Omega)
     n_candidates: int
     n_active: int
-    n_new: int              # contacts that start carrying force in this step (collisions)
+    n_new: int              # contacts carrying force that did not in the previous step
+    n_coll: int             # collisions: force-bearing contacts whose gap was > collision_gap
     overlap: float          # largest overlap among the candidates at the start of the step
     lcp: LCPInfo
     times: dict = field(default_factory=dict)
@@ -473,7 +480,7 @@ class Suspension:
 
     def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
                  dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12,
-                 factor: str = "cholmod"):
+                 factor: str = "cholmod", collision_gap: float = 1e-4):
         if state.radii is None:
             raise InputError("suspension: the state has no radii")
         if not np.any(state.E[0, 1]) or np.any(state.E @ state.E):
@@ -483,6 +490,9 @@ class Suspension:
         if factor not in FACTORS:
             raise InputError(f"suspension: factor must be one of {FACTORS}, got {factor!r}")
         self.factor = factor
+        # persistent contacts reopen by O(dg^2 |V|^2 / r) ~ 1e-8-1e-5 a0 per step (the step
+        # moves particles along straight lines); a collision closes a gap larger than this
+        self.collision_gap = collision_gap
         self.omega = state.volume
         self.max_overlap = max(0.0, -min_gap(state))
         self.sigma = 0.0
@@ -536,14 +546,15 @@ class Suspension:
         active = f > 0
         self._active_keys = self._keys(c)[active]
         n_new = int(np.count_nonzero(active & ~warm))
-        self.collisions += n_new
+        n_coll = int(np.count_nonzero(active & (c.gap > self.collision_gap)))
+        self.collisions += n_coll
         self.singular_events += info.singular
         omega = self.omega
         sigma = float(np.einsum("id,id->", V, V)) / omega
         stats = StepStats(st.gamma, dg, sigma, -float(f @ c.b) / omega,
                           -float(f @ c.gap) / dg / omega,
                           float(f @ c.dist) / (st.d * omega), len(c), int(active.sum()),
-                          n_new, overlap, info,
+                          n_new, n_coll, overlap, info,
                           dict(search=t1 - t0, lcp=t2 - t1, update=time.perf_counter() - t2))
         self.sigma, self.vmax = sigma, vmax
         self.steps += 1
@@ -629,12 +640,12 @@ def main(argv=None) -> int:
     def report(s, st):
         o = observables(s, st)
         rows.append([o["gamma"], st.dgamma, o["sigma"], o["sigma_fb"], st.gap_work, o["pressure"],
-                     o["z_all"], st.n_new, st.n_active, st.lcp.factorizations, st.lcp.singular,
+                     o["z_all"], st.n_coll, st.n_active, st.lcp.factorizations, st.lcp.singular,
                      st.overlap])
         if s.steps % a.every == 0:
             print(f"step {s.steps:6d} gamma {o['gamma']:.5f} dg {st.dgamma:.2e} sigma {o['sigma']:.4g} "
                   f"p {o['pressure']:.4g} mu {o['mu']:.3f} z_all {o['z_all']:.3f} "
-                  f"new {st.n_new} fact {st.lcp.factorizations} max_overlap {s.max_overlap:.1e}",
+                  f"coll {st.n_coll} fact {st.lcp.factorizations} max_overlap {s.max_overlap:.1e}",
                   flush=True)
 
     sim.run(a.strain, callback=report)
@@ -646,7 +657,7 @@ def main(argv=None) -> int:
     if a.out:
         from mpi4py import MPI
         if MPI.COMM_WORLD.rank == 0:
-            cols = ("gamma dgamma sigma sigma_fb gap_work pressure z_all n_new n_active "
+            cols = ("gamma dgamma sigma sigma_fb gap_work pressure z_all n_coll n_active "
                     "factorizations singular overlap")
             tmp = a.out + ".part.npz"
             np.savez(tmp, series=np.array(rows), columns=cols, N=a.N, phi=a.phi, seed=a.seed)
