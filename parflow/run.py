@@ -183,7 +183,7 @@ class Run:
             if ck is None:
                 attrs = dict(parflow_version=__version__, scene=scene["text"],
                              petsc_options="\n".join(f"-{k} {v}" for k, v in sorted(opts.items())),
-                             solver=solver_desc, versions=versions(), n_ranks=comm.getSize(),
+                             solver=solver_desc, parallel=system.parallel, versions=versions(), n_ranks=comm.getSize(),
                              git_commit=git_commit(), created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                              status="running", message="", model=scene["model"]["name"])
                 writer.create(attrs, {"initial": (state_groups(state), {}),
@@ -193,9 +193,9 @@ class Run:
                 writer.reopen(ck["n_rows"], ck["step"])
                 writer.set_attrs(status="running", restarted_at_step=step,
                                  restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        log.info("%s: %s, N = %d, Nc = %d, %d rank(s), solver %s%s", scene["model"]["name"],
+        log.info("%s: %s, N = %d, Nc = %d, %d rank(s) (%s), solver %s%s", scene["model"]["name"],
                  scene["title"] or "untitled", state.n, len(state.bonds), comm.getSize(),
-                 solver_desc, f", restarting at step {step}" if ck else "")
+                 system.parallel, solver_desc, f", restarting at step {step}" if ck else "")
 
         status, message = "running", ""
         rows_written = ck["n_rows"] if ck else 0

@@ -74,7 +74,7 @@ SCHEMA = {
     },
     "solver": {
         "preset": (str, "direct", (lambda v: v in PRESETS, f"one of {sorted(PRESETS)}")),
-        "parallel": (str, "redundant", (lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}")),
+        "parallel": (str, "auto", (lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}")),
     },
     "output": {
         "path": (str, "out/run.h5", (lambda v: len(v) > 0, "a non-empty path")),

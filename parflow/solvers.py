@@ -34,16 +34,37 @@ class SingularOperator(SolveError):
     """The factorisation of N broke down: N is singular to working precision."""
 
 
-PARALLEL_FACTORS = ("mumps", "redundant")
+PARALLEL_FACTORS = ("auto", "replicated", "redundant", "mumps")
+# "auto" replicates the algebra on every rank up to this many rows of N (the CHOLMOD factor of a
+# 2D network with Nc = 1e6 takes ~1 GB); beyond, the distributed MUMPS factorisation
+AUTO_REPLICATED_MAX_NC = 2_000_000
+
+
+def resolve_parallel(parallel: str, n_rows: int, comm_size: int) -> str:
+    """The multi-rank strategy actually used for a system of ``n_rows`` rows of N.
+
+    * ``replicated``: every rank assembles and factorises the whole N with CHOLMOD on its own
+      (PETSc objects on COMM_SELF): no communication at all in a step; each rank holds the
+      whole factor.  Measured on 2 cores it is the fastest choice for every size tried
+      (docs/solvers.md), because a force evaluation is a handful of latency-bound steps.
+    * ``redundant``: distributed N gathered onto every rank and factorised there (PCREDUNDANT).
+    * ``mumps``: the distributed MUMPS Cholesky (for N too large for one rank's memory).
+    """
+    if parallel not in PARALLEL_FACTORS:
+        raise ValueError(f"solver.parallel must be one of {PARALLEL_FACTORS}, got {parallel!r}")
+    if comm_size == 1:
+        return "replicated"
+    if parallel == "auto":
+        return "replicated" if n_rows <= AUTO_REPLICATED_MAX_NC else "mumps"
+    return parallel
 
 
 def configure_cholesky(ksp, prefix: str, parallel: str = "mumps") -> None:
     """Code defaults for a direct solve with ``ksp`` (before its setFromOptions()).
 
-    One rank: preonly + Cholesky with CHOLMOD.  Several ranks: ``parallel = "mumps"``,
-    the distributed MUMPS Cholesky; ``parallel = "redundant"``, the matrix gathered on
-    every rank and factored there by CHOLMOD (PCREDUNDANT) -- much faster than MUMPS for
-    small or narrow-band N (measured: docs/benchmarks.md), at P times the factor memory.
+    One rank (or a replicated system, on COMM_SELF): preonly + Cholesky with CHOLMOD.  Several
+    ranks: ``parallel = "mumps"``, the distributed MUMPS Cholesky; ``"redundant"``, the matrix
+    gathered on every rank and factorised there by CHOLMOD (PCREDUNDANT).
     Options already in the database (scene or command line) win over these defaults.
     """
     if parallel not in PARALLEL_FACTORS:

@@ -584,10 +584,11 @@ def coordination(c: Candidates, f: np.ndarray, n_part: int, d: int = 2,
     """z of the force-bearing contacts (f > rel max f) with rattlers (< d + 1 force-bearing
     contacts) removed iteratively (DESIGN §5); z_all = 2 N_fb / N without the removal.
 
-    Measured: in the flowing states at phi = 0.80-0.82 (z_all ~ 3.4) the iterative removal
-    cascades through the whole system (z = 0, every particle a "rattler"): a particle
-    with 2 contacts is in force balance with its drag, so the jammed-packing definition
-    of a rattler is not meaningful there; z_all is the usable number at these phi."""
+    Measured: in flowing states at phi = 0.80-0.82 (z_all ~ 3.3-3.6) the iterative removal
+    can cascade through the whole system (N = 1024, phi = 0.82: z = 0, every particle a
+    "rattler"; N = 4096: z = 3.31): a particle with 2 contacts is in force balance with
+    its drag, so the jammed-packing definition of a rattler is fragile there; z_all is
+    reported beside it."""
     from .models.packing import remove_rattlers
     fb = f > rel * (f.max() if f.size else 0.0)
     i, j = c.i[fb], c.j[fb]

@@ -18,7 +18,7 @@ import numpy as np
 
 from .cell import cell_at, pair_geometry
 from .operators import RigidityOperators
-from .solvers import CholeskySolver, SingularOperator, SolveInfo
+from .solvers import CholeskySolver, SingularOperator, SolveInfo, resolve_parallel
 from .state import State
 
 
@@ -52,15 +52,19 @@ class Force:
 class BondedSystem:
     """Operators and solvers for a state with persistent bonds (chain, network)."""
 
-    def __init__(self, comm, state: State, preset: str = "direct", parallel: str = "redundant"):
+    def __init__(self, comm, state: State, preset: str = "direct", parallel: str = "auto"):
         if state.bonds is None:
             raise ValueError("BondedSystem needs a state with bonds")
         state.bonds.validate(state.n)
-        self.comm = comm
         self.state = state
         bd = state.bonds
+        self.parallel = resolve_parallel(parallel, len(bd), comm.getSize())
+        # the communicator of the algebra: COMM_SELF when every rank holds the whole system
+        if self.parallel == "replicated" and comm.getSize() > 1:
+            from petsc4py import PETSc
+            comm = PETSc.COMM_SELF
+        self.comm = comm
         self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
-        self.parallel = parallel
         self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset, parallel)
         self.tau_solver.norm_bound = self.ops.norm_bound
         # The projection reuses the force factor (same N, no second factorisation).

@@ -15,10 +15,15 @@ from systems import dense_operators, local_rows_dense, random_bonded_state
 CASES = [("shear", 0.3), ("shear", -1.7), ("extension", 0.2), ("extension", -0.4)]
 
 
+@pytest.mark.parametrize("parallel", ["replicated", "redundant"])
 @pytest.mark.parametrize("flow,gamma", CASES)
-def test_S_N_b_against_dense(comm, flow, gamma):
+def test_S_N_b_against_dense(comm, flow, gamma, parallel):
+    """Rows of S and N split over the ranks ("redundant": distributed assembly) or whole on
+    every rank ("replicated")."""
     st = random_bonded_state(flow=flow, gamma=gamma, seed=7)
-    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    sysm = BondedSystem(PETSc.COMM_WORLD, st, parallel=parallel)
+    if comm.size > 1:
+        assert (sysm.ops.hi - sysm.ops.lo < len(st.bonds)) == (parallel == "redundant")
     F = sysm.evaluate(st.s, gamma)
     S, Nd, b, r, n = dense_operators(st)
     lo, hi, S_loc = local_rows_dense(sysm.ops.S_at(), S.shape[1])
@@ -32,7 +37,7 @@ def test_S_N_b_against_dense(comm, flow, gamma):
     sysm.destroy()
 
 
-@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
+@pytest.mark.parametrize("parallel", ["replicated", "redundant", "mumps"])
 @pytest.mark.parametrize("flow,gamma", CASES)
 def test_force_solve_and_stress_identity(comm, flow, gamma, parallel):
     st = random_bonded_state(n=40, extra=8, flow=flow, gamma=gamma, seed=11)
@@ -79,7 +84,7 @@ def test_affine_rate_across_the_lees_edwards_boundary():
         assert y == pytest.approx(0.7)
 
 
-@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
+@pytest.mark.parametrize("parallel", ["replicated", "redundant", "mumps"])
 @pytest.mark.parametrize("flow", ["shear", "extension"])
 def test_omega_min_against_eigvalsh(comm, flow, parallel):
     from parflow.spectrum import LowSpectrum, omega_from_lambda
@@ -101,7 +106,7 @@ def test_omega_min_against_eigvalsh(comm, flow, parallel):
     sysm.destroy()
 
 
-@pytest.mark.parametrize("parallel", ["redundant", "mumps"])
+@pytest.mark.parametrize("parallel", ["replicated", "redundant", "mumps"])
 def test_singular_N_is_reported(comm, parallel):
     """Three collinear-free bonds on a triangle plus a duplicate: a state of self-stress."""
     s = np.array([[0.1, 0.1], [0.4, 0.15], [0.2, 0.5]])
