@@ -469,7 +469,7 @@ class StepStats:
     n_candidates: int
     n_active: int
     n_new: int              # contacts carrying force that did not in the previous step
-    n_coll: int             # collisions: force-bearing contacts whose gap was > collision_gap
+    n_coll: int             # collisions: new force-bearing contacts whose gap was > collision_gap
     overlap: float          # largest overlap among the candidates at the start of the step
     lcp: LCPInfo
     times: dict = field(default_factory=dict)
@@ -491,7 +491,8 @@ class Suspension:
             raise InputError(f"suspension: factor must be one of {FACTORS}, got {factor!r}")
         self.factor = factor
         # persistent contacts reopen by O(dg^2 |V|^2 / r) ~ 1e-8-1e-5 a0 per step (the step
-        # moves particles along straight lines); a collision closes a gap larger than this
+        # moves particles along straight lines); a collision is a contact that did not carry
+        # force in the previous step and closes a gap larger than collision_gap
         self.collision_gap = collision_gap
         self.omega = state.volume
         self.max_overlap = max(0.0, -min_gap(state))
@@ -546,7 +547,7 @@ class Suspension:
         active = f > 0
         self._active_keys = self._keys(c)[active]
         n_new = int(np.count_nonzero(active & ~warm))
-        n_coll = int(np.count_nonzero(active & (c.gap > self.collision_gap)))
+        n_coll = int(np.count_nonzero(active & ~warm & (c.gap > self.collision_gap)))
         self.collisions += n_coll
         self.singular_events += info.singular
         omega = self.omega
