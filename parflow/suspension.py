@@ -562,6 +562,32 @@ class Suspension:
         self.last_f, self.last_c, self.last_V = f, c, V
         return stats
 
+    def checkpoint(self) -> dict:
+        """Everything a bit-identical continuation needs: the state, the step-control memory
+        (sigma, max |V_na| of the last step) and the warm active set, keyed by (i, j)."""
+        st = self.state
+        return dict(s=st.s.copy(), h0=st.h0.copy(), gamma=float(st.gamma), radii=st.radii.copy(),
+                    sigma=self.sigma, vmax=self.vmax, active_keys=self._active_keys.copy(),
+                    steps=self.steps, collisions=self.collisions, max_overlap=self.max_overlap,
+                    singular_events=self.singular_events,
+                    controls=dict(skin=self.skin, c=self.c, dmax=self.dmax, dg_max=self.dg_max,
+                                  dg_min=self.dg_min, factor=self.factor,
+                                  collision_gap=self.collision_gap))
+
+    @classmethod
+    def restore(cls, ck: dict) -> "Suspension":
+        state = State(np.array(ck["s"], float), np.array(ck["h0"], float),
+                      velocity_gradient("shear", 2), float(ck["gamma"]), None,
+                      np.array(ck["radii"], float))
+        state.meta["model"] = "suspension"
+        sim = cls(state, **ck["controls"])
+        sim.sigma, sim.vmax = float(ck["sigma"]), float(ck["vmax"])
+        sim._active_keys = np.array(ck["active_keys"], np.int64)
+        sim.steps, sim.collisions = int(ck["steps"]), int(ck["collisions"])
+        sim.max_overlap = max(sim.max_overlap, float(ck["max_overlap"]))
+        sim.singular_events = int(ck["singular_events"])
+        return sim
+
     def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
         """Step until ``strain`` more strain has been applied; returns the per-step stats."""
         out = []

@@ -135,9 +135,12 @@ def test_steps_no_overlap_and_sigma_identity(dense):
 def test_restart_same_trajectory(dense):
     a = su.Suspension(dense.copy())
     a.run(0.03)
-    b = su.Suspension(dense.copy())
+    ck = a.checkpoint()
+    a.run(0.03)
+    b = su.Suspension.restore(ck)
     b.run(0.03)
     assert np.array_equal(a.state.s, b.state.s) and a.state.gamma == b.state.gamma
+    assert a.sigma == b.sigma and a.steps == b.steps and a.collisions == b.collisions
 
 
 @pytest.mark.parametrize("kw, msg", [
