@@ -211,7 +211,7 @@ def solve_active(N: sp.csr_matrix, q: np.ndarray, A: np.ndarray, info: LCPInfo,
 
 
 def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
-              tol: float | None = None, max_iter: int = 500, bpp_max: int = 30,
+              tol: float | None = None, max_iter: int = 200, bpp_max: int = 30,
               bpp_patience: int = 3, factor: str = "cholmod") -> tuple[np.ndarray, LCPInfo]:
     """f >= 0, w = S S^T f + q >= -tol, f . w = 0 by a warm-started active set.
 
@@ -292,7 +292,8 @@ def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
                 break
             # ratio test from the feasible f towards z
             fa, za = f[neg], z[neg]
-            ratio = np.where(fa > 0, fa / (fa - za), 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(fa > 0, fa / (fa - za), 0.0)
             alpha = float(ratio.min())
             f = f + alpha * (z - f)
             drop = np.zeros(nc, bool)

@@ -193,12 +193,17 @@ class StepStats:
     times: dict = field(default_factory=dict)
 
 
+class ShearJammed(RuntimeError):
+    """The contact LCP is infeasible at every allowed step size: finite-size shear jamming."""
+
+
 class Suspension:
     """Stepper for a hard-disc suspension state (radii set, no bonds)."""
 
     def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
                  dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12,
-                 factor: str = "cholmod", collision_gap: float = 1e-4):
+                 factor: str = "cholmod", collision_gap: float = 1e-4,
+                 overlap_tol: float = 1e-12):
         if state.radii is None:
             raise InputError("suspension: the state has no radii")
         if not np.any(state.E[0, 1]) or np.any(state.E @ state.E):
@@ -212,6 +217,9 @@ class Suspension:
         # moves particles along straight lines); a collision is a contact that did not carry
         # force in the previous step and closes a gap larger than collision_gap
         self.collision_gap = collision_gap
+        # largest overlap a step may create through an unsatisfied constraint (w < 0)
+        self.overlap_tol = overlap_tol
+        self.infeasible_halvings = 0
         self.omega = state.volume
         self.max_overlap = max(0.0, -min_gap(state))
         self.sigma = 0.0
@@ -248,13 +256,35 @@ class Suspension:
         if self.vmax > 0:
             dg = min(dg, self.dmax / self.vmax)
         sig_max = 2.0 * float(st.radii.max())
+        n_fb = 0
         while True:
-            S, q, f, V, info, warm = self.forces(c, dg)
-            vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
-            if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
-                break
-            dg *= 0.5
+            try:
+                S, q, f, V, info, warm = self.forces(c, dg)
+                n_fb = int(np.count_nonzero(f > 0))
+                # an infeasible LCP (a self-stress tau >= 0 with tau . q < 0: a cluster the
+                # flow compresses) leaves w < 0 on the regularised active set: overlap
+                # dg |w| would grow this step.  Smaller steps give the reopened gaps more
+                # weight (h/dg); when no step size helps, the suspension is shear-jammed.
+                bad = max(0.0, -info.min_w)
+                feasible = (bad <= 1e-8 * max(1.0, float(np.abs(c.b).max()))
+                            and dg * bad <= self.overlap_tol)
+            except LCPFailure:
+                feasible, vmax = False, math.inf
+            if feasible:
+                vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
+                if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
+                    break
+            else:
+                self.infeasible_halvings += 1
+            dg *= 0.5 if feasible else 0.1
             if dg < self.dg_min:
+                if not feasible:
+                    raise ShearJammed(
+                        f"suspension: shear-jammed at gamma = {st.gamma:.8g}: the contact "
+                        f"problem has no solution without overlap for any step >= "
+                        f"{self.dg_min:g} (a state of self-stress among "
+                        f"{n_fb} force-bearing "
+                        f"contacts that the flow compresses); stress is infinite at this N")
                 raise RuntimeError(f"suspension: step size fell below {self.dg_min:g} "
                                    f"(max |V_na| = {vmax:.3g})")
         t2 = time.perf_counter()
@@ -290,7 +320,8 @@ class Suspension:
                     singular_events=self.singular_events,
                     controls=dict(skin=self.skin, c=self.c, dmax=self.dmax, dg_max=self.dg_max,
                                   dg_min=self.dg_min, factor=self.factor,
-                                  collision_gap=self.collision_gap))
+                                  collision_gap=self.collision_gap,
+                                  overlap_tol=self.overlap_tol))
 
     @classmethod
     def restore(cls, ck: dict) -> "Suspension":
@@ -394,12 +425,18 @@ def main(argv=None) -> int:
                   f"coll {st.n_coll} fact {st.lcp.factorizations} max_overlap {s.max_overlap:.1e}",
                   flush=True)
 
-    sim.run(a.strain, callback=report)
+    status = 0
+    try:
+        sim.run(a.strain, callback=report)
+    except ShearJammed as exc:
+        print(f"stopped: {exc}", file=sys.stderr)
+        status = 3
     wall = time.perf_counter() - t0
     print(f"done: {sim.steps} steps, strain {state.gamma:.4f}, {wall:.1f} s "
           f"({sim.steps / wall:.1f} steps/s, {state.gamma / wall * 3600:.1f} strain/hour), "
           f"max overlap {sim.max_overlap:.2e}, collisions {sim.collisions}, "
-          f"singular active sets {sim.singular_events}")
+          f"singular active sets {sim.singular_events}, "
+          f"infeasible step reductions {sim.infeasible_halvings}")
     if a.out:
         from mpi4py import MPI
         if MPI.COMM_WORLD.rank == 0:
@@ -409,7 +446,7 @@ def main(argv=None) -> int:
             np.savez(tmp, series=np.array(rows), columns=cols, N=a.N, phi=a.phi, seed=a.seed)
             import os
             os.replace(tmp, a.out if a.out.endswith(".npz") else a.out + ".npz")
-    return 0
+    return status
 
 
 if __name__ == "__main__":

@@ -191,3 +191,31 @@ def test_cli(tmp_path, capsys, comm):
     if comm.rank == 0:
         data = np.load(out)
         assert data["series"].shape[1] == 12 and data["series"][-1, 0] >= 0.02 - 1e-12
+
+
+def test_shear_jammed_crystal_is_diagnosed():
+    """A touching triangular crystal is over-constrained: the shear compresses its 120-degree
+    bonds, the LCP has no overlap-free solution at any step size -> ShearJammed, no overlap."""
+    from parflow.state import State
+    nx, ny = 6, 6
+    X = np.array([[i + 0.5 * (j % 2), j * np.sqrt(3) / 2] for j in range(ny) for i in range(nx)])
+    h0 = np.diag([nx, ny * np.sqrt(3) / 2])
+    st = State(X @ np.linalg.inv(h0).T, h0, np.array([[0.0, 1.0], [0.0, 0.0]]), 0.0, None,
+               np.full(nx * ny, 0.5))
+    assert abs(su.min_gap(st)) < 1e-12
+    sim = su.Suspension(st, dg_min=1e-6)
+    s0 = st.s.copy()
+    with pytest.raises(su.ShearJammed, match="shear-jammed"):
+        sim.step()
+    assert np.array_equal(st.s, s0) and st.gamma == 0.0        # nothing half-done
+    assert sim.infeasible_halvings > 0
+
+
+def test_small_system_singular_sets_no_overlap():
+    """N = 64 at phi = 0.82 meets states of self-stress: handled, no overlap."""
+    st = su.make_suspension(64, 0.82, seed=0)
+    sim = su.Suspension(st)
+    stats = sim.run(0.4)
+    assert sim.max_overlap <= 1e-9 and su.min_gap(st) >= -1e-9
+    for s in stats:
+        assert s.dgamma * max(0.0, -s.lcp.min_w) <= 1e-12
