@@ -219,7 +219,7 @@ class Suspension:
         self.collision_gap = collision_gap
         # largest overlap a step may create through an unsatisfied constraint (w < 0)
         self.overlap_tol = overlap_tol
-        self.infeasible_halvings = 0
+        self.infeasible_reductions = 0
         self.omega = state.volume
         self.max_overlap = max(0.0, -min_gap(state))
         self.sigma = 0.0
@@ -275,7 +275,7 @@ class Suspension:
                 if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
                     break
             else:
-                self.infeasible_halvings += 1
+                self.infeasible_reductions += 1
             dg *= 0.5 if feasible else 0.1
             if dg < self.dg_min:
                 if not feasible:
@@ -318,6 +318,7 @@ class Suspension:
                     sigma=self.sigma, vmax=self.vmax, active_keys=self._active_keys.copy(),
                     steps=self.steps, collisions=self.collisions, max_overlap=self.max_overlap,
                     singular_events=self.singular_events,
+                    infeasible_reductions=self.infeasible_reductions,
                     controls=dict(skin=self.skin, c=self.c, dmax=self.dmax, dg_max=self.dg_max,
                                   dg_min=self.dg_min, factor=self.factor,
                                   collision_gap=self.collision_gap,
@@ -335,6 +336,7 @@ class Suspension:
         sim.steps, sim.collisions = int(ck["steps"]), int(ck["collisions"])
         sim.max_overlap = max(sim.max_overlap, float(ck["max_overlap"]))
         sim.singular_events = int(ck["singular_events"])
+        sim.infeasible_reductions = int(ck.get("infeasible_reductions", 0))
         return sim
 
     def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
@@ -436,7 +438,7 @@ def main(argv=None) -> int:
           f"({sim.steps / wall:.1f} steps/s, {state.gamma / wall * 3600:.1f} strain/hour), "
           f"max overlap {sim.max_overlap:.2e}, collisions {sim.collisions}, "
           f"singular active sets {sim.singular_events}, "
-          f"infeasible step reductions {sim.infeasible_halvings}")
+          f"infeasible step reductions {sim.infeasible_reductions}")
     if a.out:
         from mpi4py import MPI
         if MPI.COMM_WORLD.rank == 0:

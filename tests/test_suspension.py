@@ -208,7 +208,7 @@ def test_shear_jammed_crystal_is_diagnosed():
     with pytest.raises(su.ShearJammed, match="shear-jammed"):
         sim.step()
     assert np.array_equal(st.s, s0) and st.gamma == 0.0        # nothing half-done
-    assert sim.infeasible_halvings > 0
+    assert sim.infeasible_reductions > 0
 
 
 def test_small_system_singular_sets_no_overlap():
