@@ -219,3 +219,15 @@ def test_small_system_singular_sets_no_overlap():
     assert sim.max_overlap <= 1e-9 and su.min_gap(st) >= -1e-9
     for s in stats:
         assert s.dgamma * max(0.0, -s.lcp.min_w) <= 1e-12
+
+
+def test_relaxation_fit_exact():
+    g = np.cumsum(np.full(40, 1e-3))
+    dg = np.full(40, 1e-3)
+    C = 7.0
+    sig = 1.0 / (1.0 / 50.0 + (g - dg) / C)      # evaluated at the start of each step
+    nc = np.zeros(40, int)
+    nc[20] = 3                                   # one collision: pairs touching step 20 skipped
+    r = su.relaxation(g, dg, sig, nc)
+    assert r["pairs"] == 37 and r["decreasing"] == 1.0
+    assert abs(r["slope"] - 2.0) < 1e-9 and abs(r["C"] - C) < 1e-9
