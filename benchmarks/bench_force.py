@@ -115,9 +115,9 @@ def measure(st: State, repeat: int, parallel: str) -> dict:
 
     # raw: a bare KSP on a copy of N, numeric refactorisation + solve only
     M = sysm.ops.N.duplicate(copy=True)
-    ksp = PETSc.KSP().create(comm)
+    ksp = PETSc.KSP().create(M.getComm())      # COMM_SELF when the algebra is replicated
     ksp.setOptionsPrefix("raw_")
-    configure_cholesky(ksp, "raw_", parallel)
+    configure_cholesky(ksp, "raw_", sysm.parallel)
     ksp.setOperators(M)
     ksp.setFromOptions()
     x, b = M.createVecs()
@@ -143,7 +143,7 @@ def main():
     p.add_argument("--sizes", default="1e4,1e5,1e6")
     p.add_argument("--systems", default="chain,network")
     p.add_argument("--repeat", type=int, default=15)
-    p.add_argument("--parallel", default="redundant", choices=["redundant", "mumps"])
+    p.add_argument("--parallel", default="auto", choices=["auto", "replicated", "redundant", "mumps"])
     args = p.parse_args()
     comm = PETSc.COMM_WORLD
     records = []

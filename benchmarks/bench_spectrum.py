@@ -31,7 +31,7 @@ def main():
     p = argparse.ArgumentParser()
     p.add_argument("--nc", type=float, default=1e6)
     p.add_argument("--k", type=int, default=6)
-    p.add_argument("--parallel", default="redundant", choices=["redundant", "mumps"])
+    p.add_argument("--parallel", default="auto", choices=["auto", "replicated", "redundant", "mumps"])
     p.add_argument("--own-factor", action="store_true",
                    help="factorise N for SLEPc instead of reusing the force solver's factor")
     args = p.parse_args()

@@ -69,6 +69,9 @@ def configure_cholesky(ksp, prefix: str, parallel: str = "mumps") -> None:
     """
     if parallel not in PARALLEL_FACTORS:
         raise ValueError(f"solver.parallel must be one of {PARALLEL_FACTORS}, got {parallel!r}")
+    if ksp.getComm().getSize() > 1 and parallel in ("auto", "replicated"):
+        raise ValueError(f"parallel = {parallel!r} on a communicator of several ranks: resolve it "
+                         f"with resolve_parallel() and build the operators on COMM_SELF")
     ksp.setType(PETSc.KSP.Type.PREONLY)
     pc = ksp.getPC()
     if ksp.getComm().getSize() == 1 or parallel == "mumps":
