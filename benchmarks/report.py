@@ -30,7 +30,8 @@ def force_section(d):
            "| system | Nc | ranks | factor | parflow (ms) | raw refactor+solve (ms) | ratio | geometry (ms) | N values (ms) |",
            "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(d["records"], key=lambda r: (r["system"], r["Nc"], r["ranks"])):
-        out.append(f"| {r['system']} | {r['Nc']:,} | {r['ranks']} | {r['factor_package']} | "
+        factor = r["factor_package"] if r["ranks"] == 1 else f"{r['parallel']} ({r['factor_package']})"
+        out.append(f"| {r['system']} | {r['Nc']:,} | {r['ranks']} | {factor} | "
                    f"{1e3 * r['force_seconds']:.2f} | {1e3 * r['raw_refactor_solve_seconds']:.2f} | "
                    f"{r['ratio']:.2f} | {1e3 * r['geometry_seconds']:.2f} | {1e3 * r['load_N_seconds']:.2f} |")
     out += ["", f"Measured {d.get('date', '?')}, load average at the end {d.get('machine', {}).get('load', '?')}.",
