@@ -28,8 +28,9 @@ python3-numba) is a compiled pair loop doing the same operations in the same ord
 the two give bit-identical forces and packings.  Measured (docs/benchmarks/packing.json,
 shared 2-core machine): N = 40 000 at phi = 0.88, 13 269 FIRE iterations: 37 s CPU with
 numpy, 18 s with numba; about a third of the numba time is neighbour-list rebuilds.
-FIRE needs ~6e3 (N = 4096) to ~2e4 (N = 10^5) iterations; the count varies by +-30 %
-from seed to seed (the glassy relaxation before the convergent tail dominates it).
+FIRE needs ~6e3 (N = 4096), ~1.3e4-1.8e4 (4e4), ~2.4e4 (1e5) and ~9e4 (1e6) iterations;
+the count varies by +-30 % from seed to seed (the glassy relaxation before the
+convergent tail dominates it).  N = 10^6 (numba): 60 CPU-min, 0.9 GB peak RSS.
 
 Contacts are reported with integer image shifts n in reduced coordinates s = x/L in
 [0, 1)^d: r_ij = L * (s_j + n - s_i)   (DESIGN §2, h = diag(L)).
