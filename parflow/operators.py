@@ -50,13 +50,12 @@ class RigidityOperators:
         lo, hi = self.lo, self.hi
         nloc = hi - lo
         it = PETSc.IntType
-        self.i_loc, self.j_loc = i[lo:hi], j[lo:hi]
         self._i_all, self._j_all = i, j
         self._n, self._s_fresh = None, False
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
         comp = np.arange(d)
-        cols = np.concatenate([d * self.i_loc[:, None] + comp, d * self.j_loc[:, None] + comp], axis=1)
+        cols = np.concatenate([d * i[lo:hi, None] + comp, d * j[lo:hi, None] + comp], axis=1)
         sign = np.concatenate([-np.ones((nloc, d)), np.ones((nloc, d))], axis=1)
         order = np.argsort(cols, axis=1, kind="stable")
         s_cols = np.take_along_axis(cols, order, axis=1)

@@ -69,7 +69,7 @@ class BondedSystem:
         self.tau_solver.norm_bound = self.ops.norm_bound
         # The projection reuses the force factor (same N, no second factorisation).
         self.proj_solver = self.tau_solver
-        self._x, self._rhs = self.ops.N.createVecs()
+        self._x = self.ops.tau.duplicate()   # solution of other solves with N
         self.n_factor = 0          # numeric (re)factorisations requested
 
     @property
@@ -92,8 +92,8 @@ class BondedSystem:
         h, r, ell, n, b = self.geometry(s, gamma)
         self.load(n)
         ops = self.ops
-        ops.set_local(self._rhs, -b)
-        info = self.tau_solver.solve(self._rhs, ops.tau, what)
+        ops.set_local(ops.rhs, -b)
+        info = self.tau_solver.solve(ops.rhs, ops.tau, what)
         tau = ops.gather(ops.tau)
         V_na = ops.ST_numpy(tau)
         omega = self.omega
@@ -105,8 +105,8 @@ class BondedSystem:
     def solve_N(self, rhs: np.ndarray, solver: CholeskySolver | None = None, what="") -> np.ndarray:
         """x = N^-1 rhs with the currently loaded N (replicated in and out)."""
         solver = solver or self.proj_solver
-        self.ops.set_local(self._rhs, rhs)
-        solver.solve(self._rhs, self._x, what)
+        self.ops.set_local(self.ops.rhs, rhs)
+        solver.solve(self.ops.rhs, self._x, what)
         return self.ops.gather(self._x)
 
     def ST(self, x: np.ndarray) -> np.ndarray:
@@ -140,6 +140,5 @@ class BondedSystem:
     def destroy(self):
         self.tau_solver.destroy()
         self._x.destroy()
-        self._rhs.destroy()
         self.ops.destroy()
 
