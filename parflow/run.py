@@ -5,7 +5,6 @@ alone writes the file and prints.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -18,12 +17,12 @@ from petsc4py import PETSc
 
 from . import __version__
 from .cli import collective
-from .integrate import Heun, Jammed, StepControl
+from .engines import _at, make_engine  # noqa: F401  (_at: used by tests and analyses)
+from .integrate import Jammed, StepControl
 from .io import RunWriter, load_group, read_run
 from .models import get_model
 from .solvers import SolveError, unused_options
 from .state import Bonds, InputError, State
-from .system import BondedSystem
 
 log = logging.getLogger("parflow")
 
@@ -72,6 +71,8 @@ def state_groups(state: State) -> dict:
     if state.bonds is not None:
         bd = state.bonds
         arrays["bonds"] = dict(i=bd.i, j=bd.j, shift=bd.shift, l0=bd.l0)
+    if state.radii is not None:
+        arrays["radii"] = state.radii
     return arrays
 
 
@@ -122,8 +123,7 @@ class Run:
         if max_steps is not None:
             scene["protocol"]["max_steps"] = max_steps
         self.model = get_model(scene["model"]["name"])
-        self.control = StepControl(**scene["integrator"])
-        self.control.validate()
+        StepControl(**scene["integrator"]).validate()
         self.obs_cfg = scene["observables"]
         self.cmdline = cmdline_options or set()
 
@@ -132,49 +132,33 @@ class Run:
         # built on rank 0 and broadcast; an InputError there is raised on every rank
         return collective(self.comm, self.model.build, self.scene["model"], self.scene["seed"])
 
-    def _observe(self, state, F) -> dict:
-        obs = dict(sigma=F.sigma, sigma_tb=F.sigma_tb, sigma_mismatch=F.sigma_mismatch,
-                   pressure=F.pressure,
-                   V2=float(np.einsum("id,id->", F.V_na, F.V_na)) / state.n,
-                   residual=F.info.residual, backward_error=F.info.backward_error,
-                   refinements=F.info.refinements)
-        obs.update(self.model.observables(state, F))
-        return obs
-
-    def _omega_min(self, system) -> tuple[float, np.ndarray]:
-        from .spectrum import LowSpectrum, omega_from_lambda
-        if self._spec is None:
-            # shift-and-invert at 0 on the force solver's factor of N (already up to date)
-            self._spec = LowSpectrum(system.ops.N, k=self.obs_cfg["n_eigs"], parallel=system.parallel,
-                                     ksp=system.tau_solver.ksp)
-        lam, _ = self._spec.solve()
-        return float(omega_from_lambda(lam[:1])[0]), omega_from_lambda(lam)
+    def _observe(self, eng) -> dict:
+        return eng.observe()
 
     # ------------------------------------------------------------------------------------
     def execute(self) -> str:
         comm, scene = self.comm, self.scene
         t_start = time.monotonic()
         writer = RunWriter(self.path, scene["output"]["flush_seconds"]) if self.rank == 0 else None
-        self._spec = None
         if self.restart:
             state, ck = self._load_checkpoint()
         else:
             state, ck = self._build_state(), None
-        system = BondedSystem(comm, state, scene["solver"]["preset"], scene["solver"]["parallel"])
-        integ = Heun(system, self.control)
+        eng = make_engine(comm, state, scene, self.model, ck)
+        state = eng.state
         legs = [Leg(x, k, len(scene["protocol"]["leg"])) for k, x in enumerate(scene["protocol"]["leg"])]
 
         if ck is None:
-            s, gamma, step, strain, dg = state.s.copy(), state.gamma, 0, 0.0, self.control.initial_dgamma
-            leg_k, leg_strain, leg_steps, level = 0, 0.0, 0, None
+            step, strain = 0, 0.0
+            leg_k, leg_strain, leg_steps, level, strain_mark = 0, 0.0, 0, None, 0
         else:
-            s, gamma, step, strain, dg = ck["s"], ck["gamma"], ck["step"], ck["strain"], ck["dgamma"]
+            step, strain = ck["step"], ck["strain"]
             leg_k, leg_strain, leg_steps = ck["leg"], ck["leg_strain"], ck["leg_steps"]
             level = None if ck["level"] == -10**9 else ck["level"]
+            strain_mark = int(ck.get("strain_mark", 0))
 
-        F = system.evaluate(s, gamma, what="initial force")
-        solver_desc = system.tau_solver.describe()
-        opts = dict(system.tau_solver.resolved_options())
+        eng.start()
+        solver_desc, opts = eng.describe()
         opts.update(PETSc.Options().getAll())
         unused = [o for o in unused_options() if not o.startswith(("spec_", "options_left"))]
         if unused:
@@ -183,9 +167,10 @@ class Run:
             if ck is None:
                 attrs = dict(parflow_version=__version__, scene=scene["text"],
                              petsc_options="\n".join(f"-{k} {v}" for k, v in sorted(opts.items())),
-                             solver=solver_desc, parallel=system.parallel, versions=versions(), n_ranks=comm.getSize(),
+                             solver=solver_desc, parallel=eng.parallel, versions=versions(), n_ranks=comm.getSize(),
                              git_commit=git_commit(), created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                             status="running", message="", model=scene["model"]["name"])
+                             status="running", message="", model=scene["model"]["name"],
+                             engine=eng.kind)
                 writer.create(attrs, {"initial": (state_groups(state), {}),
                                       "model": ({}, {k: v for k, v in state.meta.items()
                                                      if isinstance(v, (int, float, str))})})
@@ -193,13 +178,13 @@ class Run:
                 writer.reopen(ck["n_rows"], ck["step"])
                 writer.set_attrs(status="running", restarted_at_step=step,
                                  restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        log.info("%s: %s, N = %d, Nc = %d, %d rank(s) (%s), solver %s%s", scene["model"]["name"],
-                 scene["title"] or "untitled", state.n, len(state.bonds), comm.getSize(),
-                 system.parallel, solver_desc, f", restarting at step {step}" if ck else "")
+        log.info("%s: %s, %s, %d rank(s) (%s), solver %s%s", scene["model"]["name"],
+                 scene["title"] or "untitled", eng.size_text(), comm.getSize(),
+                 eng.parallel, solver_desc, f", restarting at step {step}" if ck else "")
 
         status, message = "running", ""
         rows_written = ck["n_rows"] if ck else 0
-        self._system = system
+        self._engine = eng
         last_ck_step, last_ck_time = step, time.monotonic()
         last_progress = 0.0
         eta_est = EtaEstimate()
@@ -207,15 +192,12 @@ class Run:
         t_leg = time.monotonic()
         steps_at_leg_start = step
 
-        def record(F, res, obs, wom):
+        def record(obs, wom):
             nonlocal rows_written
-            row = dict(step=step, gamma=gamma, strain=strain, leg=leg_k,
+            row = dict(step=step, gamma=eng.gamma, strain=strain, leg=leg_k,
                        direction=legs[min(leg_k, len(legs) - 1)].direction,
-                       dgamma=res.dgamma if res else 0.0, err=res.err if res else 0.0,
-                       rejected=res.rejected if res else 0,
-                       length_error=res.length_error if res else float(np.max(np.abs(F.ell - state.bonds.l0))),
-                       proj_iter=res.proj_iter if res else 0,
                        omega_min=wom, wall=time.monotonic() - t_start)
+            row.update(eng.row())
             row.update(obs)
             if writer:
                 writer.append(row)
@@ -223,17 +205,18 @@ class Run:
 
         def checkpoint():
             if writer:
-                writer.set_checkpoint(dict(s=s), dict(gamma=gamma, step=step, strain=strain,
-                                                      dgamma=dg, leg=leg_k, leg_strain=leg_strain,
-                                                      leg_steps=leg_steps, n_rows=rows_written,
-                                                      level=-10**9 if level is None else level))
+                arrays, attrs = eng.checkpoint()
+                attrs.update(step=step, strain=strain, leg=leg_k, leg_strain=leg_strain,
+                             leg_steps=leg_steps, n_rows=rows_written, strain_mark=strain_mark,
+                             level=-10**9 if level is None else level)
+                writer.set_checkpoint(arrays, attrs)
 
-        obs = self._observe(state, F)
+        obs = self._observe(eng)
         leg_start_obs = dict(obs)
         if ck is None:
-            wom = self._omega_min(system)[0] if self.obs_cfg["omega_min_every"] else float("nan")
-            record(F, None, obs, wom)
-            self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
+            wom = eng.omega_min() if self.obs_cfg["omega_min_every"] else float("nan")
+            record(obs, wom)
+            self._analysis(writer, eng, step, strain, obs)
         try:
             while leg_k < len(legs):
                 leg = legs[leg_k]
@@ -244,30 +227,30 @@ class Run:
                     break
                 if why is not None:
                     log.info("leg %d/%d (%s) done at step %d, gamma = %.10g: %s", leg_k + 1,
-                             len(legs), leg.spec["direction"], step, gamma, why)
-                    self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
+                             len(legs), leg.spec["direction"], step, eng.gamma, why)
+                    self._analysis(writer, eng, step, strain, obs)
                     leg_k, leg_strain, leg_steps = leg_k + 1, 0.0, 0
                     leg_start_obs, t_leg, steps_at_leg_start = dict(obs), time.monotonic(), step
                     eta_est = EtaEstimate()
                     continue
                 cap = leg.spec["strain"] - leg_strain if "strain" in leg.spec else None
-                res = integ.step(s, gamma, F, leg.direction, dg, dg_cap=cap)
-                s, gamma, F, dg = res.s, res.gamma, res.F, res.next_dgamma
+                dgamma = eng.step(leg.direction, cap)
                 step += 1
                 leg_steps += 1
-                strain += abs(res.dgamma)
-                leg_strain += abs(res.dgamma)
-                obs = self._observe(state, F)
+                strain += abs(dgamma)
+                leg_strain += abs(dgamma)
+                obs = self._observe(eng)
                 every = self.obs_cfg["omega_min_every"]
-                wom = self._omega_min(system)[0] if every and step % every == 0 else float("nan")
+                wom = eng.omega_min() if every and step % every == 0 else float("nan")
                 wom_last = wom if np.isfinite(wom) else wom_last
-                record(F, res, obs, wom)
+                record(obs, wom)
                 if not (np.isfinite(obs["sigma"]) and np.isfinite(obs["V2"])):
-                    raise SolveError(f"non-finite stress at step {step}, gamma = {gamma:.10g}")
-                level = self._maybe_analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs, level)
+                    raise SolveError(f"non-finite stress at step {step}, gamma = {eng.gamma:.10g}")
+                level, strain_mark = self._maybe_analysis(writer, eng, step, strain, obs, level,
+                                                          strain_mark)
                 if self.obs_cfg["snapshot_every"] and step % self.obs_cfg["snapshot_every"] == 0 and writer:
-                    writer.add_group(f"snapshots/{step:08d}", dict(s=s, V_na=F.V_na, tau=F.tau),
-                                     dict(step=step, gamma=gamma, sigma=F.sigma))
+                    writer.add_group(f"snapshots/{step:08d}", eng.snapshot(),
+                                     dict(step=step, gamma=eng.gamma, sigma=obs["sigma"]))
                 now = time.monotonic()
                 if step - last_ck_step >= scene["output"]["checkpoint_every"] or \
                         now - last_ck_time >= 60 * scene["output"]["checkpoint_minutes"]:
@@ -282,18 +265,18 @@ class Run:
                     eta = eta_est.update(now, frac)
                     log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
                              "  %.1f steps/s  leg ETA %s", step, leg_k + 1, len(legs),
-                             "fwd" if leg.direction > 0 else "rev", gamma, obs["sigma"], obs["V2"],
-                             abs(res.dgamma), f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
+                             "fwd" if leg.direction > 0 else "rev", eng.gamma, obs["sigma"], obs["V2"],
+                             abs(dgamma), f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
                              rate, _hms(eta))
             else:
                 status, message = "complete", f"all {len(legs)} legs done"
         except Jammed as exc:
             status, message = "jammed", str(exc)
             log.info("stopping: %s", message)
-            system.load(F.n)      # the factor loaded last belongs to a rejected trial step
-            self._analysis(writer, system, _at(state, s, gamma), F, step, gamma, obs)
+            eng.on_jammed()
+            self._analysis(writer, eng, step, strain, obs)
         except BaseException as exc:
-            status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {gamma:.10g}, sigma = {obs['sigma']:.4g})"
+            status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, sigma = {obs['sigma']:.4g})"
             if writer:
                 checkpoint()
                 writer.set_attrs(status=status, message=message, steps=step)
@@ -302,38 +285,47 @@ class Run:
         checkpoint()
         if writer:
             writer.set_attrs(status=status, message=message, steps=step,
-                             wall_seconds=time.monotonic() - t_start,
-                             n_factorisations=system.n_factor)
+                             wall_seconds=time.monotonic() - t_start, **eng.counters())
             writer.flush()
         log.info("%s: %s; %d steps, %.1f s; wrote %s", status, message, step,
                  time.monotonic() - t_start, self.path)
-        if self._spec is not None:
-            self._spec.destroy()
-        system.destroy()
+        eng.destroy()
         return status
 
     # ------------------------------------------------------------------------------------
-    def _maybe_analysis(self, writer, system, state, F, step, gamma, obs, level):
+    def _maybe_analysis(self, writer, eng, step, strain, obs, level, strain_mark):
+        """Analyses every ``analysis_every`` steps, every ``analysis_strain`` of accumulated
+        strain, or ``analysis_per_decade`` times per decade of the analysis quantity; none
+        before ``analysis_from_strain``.  Returns the updated (level, strain_mark)."""
         cfg = self.obs_cfg
+        if strain < cfg["analysis_from_strain"]:
+            return level, strain_mark
         if cfg["analysis_every"] and step % cfg["analysis_every"] == 0:
-            self._analysis(writer, system, state, F, step, gamma, obs)
-            return level
+            self._analysis(writer, eng, step, strain, obs)
+            return level, strain_mark
+        if cfg["analysis_strain"] > 0:
+            mark = int(math.floor((strain - cfg["analysis_from_strain"]) / cfg["analysis_strain"]))
+            if mark > strain_mark:
+                self._analysis(writer, eng, step, strain, obs)
+                return level, mark
         if cfg["analysis_per_decade"] > 0:
             q = obs[cfg["analysis_quantity"]]
             if q > 0:
                 new = int(math.floor(cfg["analysis_per_decade"] * math.log10(q)))
                 if level is not None and new != level:
-                    self._analysis(writer, system, state, F, step, gamma, obs)
-                return new
-        return level
+                    self._analysis(writer, eng, step, strain, obs)
+                return new, strain_mark
+        return level, strain_mark
 
-    def _analysis(self, writer, system, state, F, step, gamma, obs):
+    def _analysis(self, writer, eng, step, strain, obs):
         cfg = self.obs_cfg
-        if not (cfg["analysis_every"] or cfg["analysis_per_decade"]):
+        if not (cfg["analysis_every"] or cfg["analysis_per_decade"] or cfg["analysis_strain"]):
             return
-        out = self.model.analyses(system, state, F)
+        if strain < cfg["analysis_from_strain"]:
+            return
+        out = eng.analyses()
         if writer:
-            attrs = dict(step=step, gamma=gamma, **{k: v for k, v in obs.items()})
+            attrs = dict(step=step, gamma=eng.gamma, strain=strain, **{k: v for k, v in obs.items()})
             attrs.update(out["scalars"])
             writer.add_group(f"analysis/{step:08d}", out["arrays"], attrs)
 
@@ -348,21 +340,18 @@ class Run:
         if self.rank == 0:
             init = load_group(f["initial"])
             ck = dict(f["checkpoint"].attrs)
-            ck["s"] = f["checkpoint/s"][()]
+            ck.update(load_group(f["checkpoint"]))
             meta = dict(f["model"].attrs) if "model" in f else {}
             f.close()
             data = (init, ck, meta)
         init, ck, meta = self.comm.tompi4py().bcast(data, root=0)
-        bd = init["bonds"]
-        state = State(init["s"], init["h0"], init["E"], 0.0,
-                      Bonds(bd["i"], bd["j"], bd["shift"], bd["l0"]), meta=meta)
+        bonds = None
+        if "bonds" in init:
+            bd = init["bonds"]
+            bonds = Bonds(bd["i"], bd["j"], bd["shift"], bd["l0"])
+        state = State(init["s"], init["h0"], init["E"], 0.0, bonds, init.get("radii"), meta=meta)
         ck = {k: (v.item() if hasattr(v, "item") and np.ndim(v) == 0 else v) for k, v in ck.items()}
         return state, ck
-
-
-def _at(state: State, s: np.ndarray, gamma: float) -> State:
-    """The state at the current instant (positions s, strain gamma), for model analyses."""
-    return dataclasses.replace(state, s=s, gamma=gamma)
 
 
 class EtaEstimate:

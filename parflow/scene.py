@@ -70,6 +70,8 @@ SCHEMA = {
         "analysis_quantity": (str, "V2", (lambda v: v in ("V2", "sigma"), "'V2' or 'sigma'")),
         "analysis_per_decade": (float, 0.0, _NONNEG),
         "analysis_every": (int, 0, _NONNEG),
+        "analysis_strain": (float, 0.0, _NONNEG),
+        "analysis_from_strain": (float, 0.0, _NONNEG),
         "snapshot_every": (int, 0, _NONNEG),
     },
     "solver": {

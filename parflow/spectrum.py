@@ -47,6 +47,7 @@ class LowSpectrum:
         eps.setTolerances(tol, max_it)
         st = eps.getST()
         st.setType(SLEPc.ST.Type.SINVERT)
+        self._shared = ksp is not None
         if ksp is not None:
             st.setKSP(ksp)
         else:
@@ -83,6 +84,13 @@ class LowSpectrum:
         return vals, ([vecs[o] for o in order] if vectors else None)
 
     def destroy(self):
+        if self._shared:
+            # destroying the ST resets its KSP (KSPReset drops the factor and the operators):
+            # hand it a private KSP first, so the shared solver stays usable
+            from petsc4py import PETSc
+            dummy = PETSc.KSP().create(self.A.getComm())
+            self.eps.getST().setKSP(dummy)
+            dummy.destroy()
         self.eps.destroy()
 
 

@@ -234,15 +234,22 @@ class Suspension:
     def _keys(self, c: Candidates) -> np.ndarray:
         return c.i * self.state.n + c.j
 
-    def forces(self, c: Candidates, dg: float):
+    def forces(self, c: Candidates, dg: float, direction: int = 1):
+        """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
+        -1 reversed flow: the affine rates change sign, b -> -b)."""
         S = rigidity(c, self.state.n)
-        q = c.b + c.gap / dg
+        q = direction * c.b + c.gap / dg
         warm = np.isin(self._keys(c), self._active_keys)
         f, info = solve_lcp(S, q, warm, factor=self.factor)
         V = (S.T @ f).reshape(self.state.n, self.state.d)
         return S, q, f, V, info, warm
 
-    def step(self) -> StepStats:
+    def step(self, direction: int = 1) -> StepStats:
+        """One step of strain magnitude dg (chosen here) in ``direction`` (+1: gamma grows,
+        -1: reversed flow, gamma decreases).  V_na is the non-affine velocity per unit
+        strain *along the direction of the flow*, so sigma = |V_na|^2 / Omega >= 0 either way."""
+        if direction not in (1, -1):
+            raise ValueError(f"direction must be +1 or -1, got {direction!r}")
         st = self.state
         t0 = time.perf_counter()
         h = st.h
@@ -259,7 +266,7 @@ class Suspension:
         n_fb = 0
         while True:
             try:
-                S, q, f, V, info, warm = self.forces(c, dg)
+                S, q, f, V, info, warm = self.forces(c, dg, direction)
                 n_fb = int(np.count_nonzero(f > 0))
                 # an infeasible LCP (a self-stress tau >= 0 with tau . q < 0: a cluster the
                 # flow compresses) leaves w < 0 on the regularised active set: overlap
@@ -288,10 +295,10 @@ class Suspension:
                 raise RuntimeError(f"suspension: step size fell below {self.dg_min:g} "
                                    f"(max |V_na| = {vmax:.3g})")
         t2 = time.perf_counter()
-        h_new = cell_at(st.h0, st.E, st.gamma + dg)
+        h_new = cell_at(st.h0, st.E, st.gamma + direction * dg)
         st.s = st.s + dg * V @ np.linalg.inv(h_new).T
         st.s -= np.floor(st.s)
-        st.gamma += dg
+        st.gamma += direction * dg
         active = f > 0
         self._active_keys = self._keys(c)[active]
         n_new = int(np.count_nonzero(active & ~warm))
@@ -300,7 +307,7 @@ class Suspension:
         self.singular_events += info.singular
         omega = self.omega
         sigma = float(np.einsum("id,id->", V, V)) / omega
-        stats = StepStats(st.gamma, dg, sigma, -float(f @ c.b) / omega,
+        stats = StepStats(st.gamma, dg, sigma, -direction * float(f @ c.b) / omega,
                           -float(f @ c.gap) / dg / omega,
                           float(f @ c.dist) / (st.d * omega), len(c), int(active.sum()),
                           n_new, n_coll, overlap, info,

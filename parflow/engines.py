@@ -1,0 +1,278 @@
+"""Step engines of the driver (``parflow.run``): what one strain step *is* for a model.
+
+The driver (legs, stop rules, output, checkpoints, progress, analyses schedule) is the same
+for every model; an engine owns the physics of a step:
+
+* :class:`BondedEngine` -- persistent rods (chain, network): Heun with error control and
+  projection on the rod lengths (``integrate.Heun``), forces from N tau = -b
+  (``system.BondedSystem``).
+* :class:`ContactEngine` -- hard-disc suspension: contacts found anew every step, forces
+  from the contact LCP, conservative no-overlap step (``parflow.suspension.Suspension``).
+
+Both expose: ``start()`` (forces at the initial configuration), ``step(direction, cap)``,
+``observe()``, ``row()`` (per-step diagnostics), ``omega_min()``, ``analyses()``,
+``snapshot()``, ``checkpoint()`` / restart through ``restore``, ``describe()``,
+``on_jammed()``, ``destroy()``.  ``s`` and ``gamma`` are the engine's current configuration.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .integrate import Heun, Jammed, StepControl
+from .state import Bonds, InputError, State
+from .system import BondedSystem
+
+
+def _at(state: State, s: np.ndarray, gamma: float) -> State:
+    """The state at the current instant (positions s, strain gamma), for model analyses."""
+    return dataclasses.replace(state, s=s, gamma=gamma)
+
+
+class BondedEngine:
+    """Chain and network: Heun steps of the rigid-rod dynamics."""
+
+    kind = "bonded"
+
+    def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
+        self.state, self.model = state, model
+        self.control = StepControl(**scene["integrator"])
+        self.control.validate()
+        self.system = BondedSystem(comm, state, scene["solver"]["preset"], scene["solver"]["parallel"])
+        self.integ = Heun(self.system, self.control)
+        self.n_eigs = scene["observables"]["n_eigs"]
+        self._spec = None
+        if ck is None:
+            self.s, self.gamma, self.dg = state.s.copy(), state.gamma, self.control.initial_dgamma
+        else:
+            self.s, self.gamma, self.dg = ck["s"], ck["gamma"], ck["dgamma"]
+        self.F = None
+        self.res = None
+
+    @property
+    def parallel(self) -> str:
+        return self.system.parallel
+
+    def start(self):
+        self.F = self.system.evaluate(self.s, self.gamma, what="initial force")
+        return self.F
+
+    def describe(self) -> tuple[str, dict]:
+        return self.system.tau_solver.describe(), dict(self.system.tau_solver.resolved_options())
+
+    def size_text(self) -> str:
+        return f"N = {self.state.n}, Nc = {len(self.state.bonds)}"
+
+    def step(self, direction: int, cap: float | None) -> float:
+        res = self.integ.step(self.s, self.gamma, self.F, direction, self.dg, dg_cap=cap)
+        self.s, self.gamma, self.F, self.dg = res.s, res.gamma, res.F, res.next_dgamma
+        self.res = res
+        return res.dgamma
+
+    def observe(self) -> dict:
+        F, state = self.F, self.state
+        obs = dict(sigma=F.sigma, sigma_tb=F.sigma_tb, sigma_mismatch=F.sigma_mismatch,
+                   pressure=F.pressure,
+                   V2=float(np.einsum("id,id->", F.V_na, F.V_na)) / state.n,
+                   residual=F.info.residual, backward_error=F.info.backward_error,
+                   refinements=F.info.refinements)
+        obs.update(self.model.observables(state, F))
+        return obs
+
+    def row(self) -> dict:
+        res = self.res
+        if res is None:
+            return dict(dgamma=0.0, err=0.0, rejected=0, proj_iter=0,
+                        length_error=float(np.max(np.abs(self.F.ell - self.state.bonds.l0))))
+        return dict(dgamma=res.dgamma, err=res.err, rejected=res.rejected,
+                    length_error=res.length_error, proj_iter=res.proj_iter)
+
+    def omega_min(self) -> float:
+        from .spectrum import LowSpectrum, omega_from_lambda
+        if self._spec is None:
+            # shift-and-invert at 0 on the force solver's factor of N (already up to date)
+            self._spec = LowSpectrum(self.system.ops.N, k=self.n_eigs, parallel=self.system.parallel,
+                                     ksp=self.system.tau_solver.ksp)
+        lam, _ = self._spec.solve()
+        return float(omega_from_lambda(lam[:1])[0])
+
+    def analyses(self) -> dict:
+        return self.model.analyses(self.system, _at(self.state, self.s, self.gamma), self.F)
+
+    def snapshot(self) -> dict:
+        return dict(s=self.s, V_na=self.F.V_na, tau=self.F.tau)
+
+    def checkpoint(self) -> tuple[dict, dict]:
+        return dict(s=self.s), dict(gamma=self.gamma, dgamma=self.dg)
+
+    def on_jammed(self) -> None:
+        self.system.load(self.F.n)      # the factor loaded last belongs to a rejected trial step
+
+    def counters(self) -> dict:
+        return dict(n_factorisations=self.system.n_factor)
+
+    def destroy(self) -> None:
+        if self._spec is not None:
+            self._spec.destroy()
+        self.system.destroy()
+
+
+@dataclasses.dataclass
+class ContactForce:
+    """The contact forces of the suspension at one configuration (what analyses see)."""
+
+    gamma: float
+    h: np.ndarray
+    c: object            # contacts.Candidates
+    f: np.ndarray        # contact forces (>= 0, compressive)
+    V_na: np.ndarray     # (N, d)
+    sigma: float
+
+
+class ContactEngine:
+    """Hard-disc suspension: one LCP step per strain step (``parflow.suspension``)."""
+
+    kind = "contacts"
+
+    def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
+        from . import suspension as su
+        self.comm, self.state, self.model, self.scene = comm, state, model, scene
+        self.su = su
+        if ck is None:
+            self.sim = su.Suspension(state, **model.controls(state.meta))
+        else:
+            self.sim = su.Suspension.restore(model.restore_dict(state, ck))
+            self.state = self.sim.state
+            self.state.meta.update(state.meta)
+        self.stats = None
+        self.F = None
+        self._direction = 1
+
+    # configuration -----------------------------------------------------------------
+    @property
+    def s(self) -> np.ndarray:
+        return self.sim.state.s
+
+    @property
+    def gamma(self) -> float:
+        return self.sim.state.gamma
+
+    @property
+    def parallel(self) -> str:
+        return "replicated"
+
+    def size_text(self) -> str:
+        return f"N = {self.state.n} discs, phi = {self.state.meta.get('phi', float('nan')):.4f}"
+
+    def describe(self) -> tuple[str, dict]:
+        return f"contact LCP (active set on {self.sim.factor})", {}
+
+    # forces ------------------------------------------------------------------------
+    def probe(self, direction: int | None = None) -> ContactForce:
+        """Contact forces at the current configuration for the step the stepper would take
+        next, without moving (the first row, and the configuration analyses look at)."""
+        sim, st = self.sim, self.sim.state
+        direction = self._direction if direction is None else direction
+        c = self.su.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
+        dg = sim.dg_max
+        if sim.sigma > 0:
+            dg = min(dg, sim.c / sim.sigma)
+        if sim.vmax > 0:
+            dg = min(dg, sim.dmax / sim.vmax)
+        keep = sim._active_keys
+        _, _, f, V, _, _ = sim.forces(c, dg, direction)
+        sim._active_keys = keep
+        sigma = float(np.einsum("id,id->", V, V)) / sim.omega
+        return ContactForce(st.gamma, st.h, c, f, V, sigma)
+
+    def start(self):
+        self.F = self.probe(+1)
+        return self.F
+
+    def step(self, direction: int, cap: float | None) -> float:
+        sim = self.sim
+        self._direction = direction
+        keep = sim.dg_max
+        if cap is not None:
+            sim.dg_max = min(sim.dg_max, max(cap, sim.dg_min))
+        try:
+            g0 = sim.state.gamma
+            self.stats = sim.step(direction)
+        except self.su.ShearJammed as exc:
+            raise Jammed(str(exc)) from None
+        finally:
+            sim.dg_max = keep
+        st = sim.state
+        self.F = ContactForce(st.gamma, st.h, sim.last_c, sim.last_f, sim.last_V, self.stats.sigma)
+        return st.gamma - g0
+
+    def observe(self) -> dict:
+        sim, F = self.sim, self.F
+        n = self.state.n
+        fb_sigma = -self._direction * float(F.f @ F.c.b) / sim.omega
+        p = float(F.f @ F.c.dist) / (self.state.d * sim.omega)
+        z = self.su.coordination(F.c, F.f, n, self.state.d)
+        return dict(sigma=F.sigma, sigma_fb=fb_sigma, pressure=p,
+                    mu=F.sigma / p if p > 0 else float("nan"),
+                    V2=float(np.einsum("id,id->", F.V_na, F.V_na)) / n,
+                    max_overlap=sim.max_overlap, collisions=sim.collisions, **z)
+
+    def row(self) -> dict:
+        st = self.stats
+        if st is None:
+            return dict(dgamma=0.0, n_candidates=len(self.F.c), n_active=int(np.count_nonzero(self.F.f > 0)),
+                        n_new=0, n_coll=0, overlap=0.0, lcp_iterations=0, factorizations=0,
+                        singular=0, min_w=0.0, gap_work=0.0,
+                        t_search=0.0, t_lcp=0.0, t_update=0.0)
+        return dict(dgamma=self._direction * st.dgamma, n_candidates=st.n_candidates,
+                    n_active=st.n_active, n_new=st.n_new, n_coll=st.n_coll, overlap=st.overlap,
+                    lcp_iterations=st.lcp.iterations, factorizations=st.lcp.factorizations,
+                    singular=st.lcp.singular, min_w=st.lcp.min_w, gap_work=st.gap_work,
+                    t_search=st.times["search"], t_lcp=st.times["lcp"], t_update=st.times["update"])
+
+    # analyses ----------------------------------------------------------------------
+    def omega_min(self) -> float:
+        return self.model.frozen_omega_min(self.comm, self.state, self.probe(), self.scene)
+
+    def analyses(self) -> dict:
+        return self.model.analyses(self.comm, self.state, self.probe(), self.scene, self._direction)
+
+    def snapshot(self) -> dict:
+        return dict(s=self.s, V_na=self.F.V_na, f=self.F.f, contact_i=self.F.c.i, contact_j=self.F.c.j)
+
+    def checkpoint(self) -> tuple[dict, dict]:
+        ck = self.sim.checkpoint()
+        arrays = dict(s=ck["s"], active_keys=ck["active_keys"])
+        attrs = {k: ck[k] for k in ("gamma", "sigma", "vmax", "steps", "collisions", "max_overlap",
+                                    "singular_events", "infeasible_reductions")}
+        attrs["direction"] = self._direction
+        attrs["dgamma"] = 0.0
+        return arrays, attrs
+
+    def restore_direction(self, ck: dict) -> None:
+        self._direction = int(ck.get("direction", 1))
+
+    def on_jammed(self) -> None:
+        pass
+
+    def counters(self) -> dict:
+        sim = self.sim
+        return dict(collisions=sim.collisions, max_overlap=sim.max_overlap,
+                    singular_events=sim.singular_events,
+                    infeasible_reductions=sim.infeasible_reductions)
+
+    def destroy(self) -> None:
+        pass
+
+
+def make_engine(comm, state: State, scene: dict, model, ck: dict | None = None):
+    kind = getattr(model, "ENGINE", "bonded")
+    if kind == "contacts":
+        eng = ContactEngine(comm, state, scene, model, ck)
+        if ck is not None:
+            eng.restore_direction(ck)
+        return eng
+    if state.bonds is None:
+        raise InputError(f"model {scene['model']['name']!r} built a state without bonds")
+    return BondedEngine(comm, state, scene, model, ck)

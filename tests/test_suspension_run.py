@@ -1,0 +1,168 @@
+"""The suspension through the scene driver (parflow.shear): legs in both directions, HDF5
+output, analyses on the frozen contact network (omega_min, point response, delta_gamma),
+restart, 1 rank vs 2 ranks, bad scenes."""
+import h5py
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from parflow.models import chain
+from parflow.models import suspension as msu
+from parflow.run import Run, setup_logging
+from parflow.scene import load_scene
+from parflow.state import InputError
+from parflow.system import BondedSystem
+
+
+def susp_scene(path, N=192, phi=0.80, fwd=0.08, rev=0.03, extra="", model=""):
+    return load_scene(f"""
+seed = 3
+[model]
+name = "suspension"
+N = {N}
+phi = {phi}
+response_rods = 3
+{model}
+[[protocol.leg]]
+direction = "forward"
+strain = {fwd}
+[[protocol.leg]]
+direction = "reverse"
+strain = {rev}
+[observables]
+analysis_strain = 0.04
+[output]
+path = "{path}"
+checkpoint_every = 4
+{extra}
+""")
+
+
+def run_scene(scene, comm=None, **kw):
+    comm = comm or PETSc.COMM_WORLD
+    setup_logging(comm, quiet=True)
+    return Run(scene, comm, scene["output"]["path"], quiet=True, **kw).execute()
+
+
+def test_suspension_scene_forward_and_reverse(comm, mpi_tmp_path):
+    path = str(mpi_tmp_path / "susp.h5")
+    assert run_scene(susp_scene(path)) == "complete"
+    comm.barrier()
+    with h5py.File(path) as f:                      # every rank reads and asserts
+        assert f.attrs["engine"] == "contacts" and f.attrs["model"] == "suspension"
+        assert f.attrs["max_overlap"] <= 1e-9
+        ts = f["timeseries"]
+        g, dg, d = ts["gamma"][:], ts["dgamma"][:], ts["direction"][:]
+        np.testing.assert_allclose(np.diff(g), dg[1:], rtol=0, atol=1e-14)
+        assert np.all(dg[1:] * d[1:] > 0)           # steps go the way of their leg
+        assert g[-1] == pytest.approx(0.08 - 0.03, abs=1e-12)
+        assert np.all(ts["sigma"][:] > 0) and np.all(ts["pressure"][:] > 0)
+        assert np.max(ts["overlap"][:]) <= 1e-9
+        # sigma = |V_na|^2/Omega = -<f|b>/Omega + gap work (complementarity, DESIGN §5)
+        s_id = ts["sigma_fb"][1:] + ts["gap_work"][1:]
+        np.testing.assert_allclose(s_id, ts["sigma"][1:], rtol=1e-6)
+        groups = sorted(f["analysis"])
+        assert len(groups) >= 3
+        for k in groups:
+            a = f["analysis"][k]
+            assert a.attrs["frozen_error"] == ""
+            assert a.attrs["frozen_omega_min"] > 0
+            assert 0 < a.attrs["delta_gamma_reached"] <= a.attrs["delta_gamma"] < 1.0
+            assert a.attrs["delta_gamma_stop"] in ("target", "jammed")
+            # P(f/<f>) is a density of the force-bearing contacts
+            w = np.diff(a["force_edges"][:]) * a["force_P"][:]
+            assert np.nansum(w) == pytest.approx(1.0, abs=1e-3)
+            assert a["corr_C"].shape == a["corr_r"].shape
+            assert np.isfinite(a.attrs["resp_l_c"])
+
+
+def test_restart_equals_uninterrupted(comm, mpi_tmp_path):
+    full = str(mpi_tmp_path / "sfull.h5")
+    part = str(mpi_tmp_path / "spart.h5")
+    run_scene(susp_scene(full))
+    assert run_scene(susp_scene(part), max_steps=9) == "budget"
+    comm.barrier()
+    scene = load_scene(susp_scene(part)["text"])
+    scene["output"]["path"] = part
+    assert run_scene(scene, restart=True, max_steps=10**6) == "complete"
+    comm.barrier()
+    with h5py.File(full) as a, h5py.File(part) as b:
+        assert a["timeseries/step"].shape == b["timeseries/step"].shape
+        for q in ("gamma", "sigma", "dgamma", "n_active", "collisions"):
+            np.testing.assert_array_equal(a["timeseries"][q][:], b["timeseries"][q][:])
+        np.testing.assert_array_equal(a["checkpoint/s"][:], b["checkpoint/s"][:])
+        assert b.attrs["restarted_at_step"] == 9
+    comm.barrier()
+
+
+def test_two_ranks_equal_one_rank(comm, mpi_tmp_path):
+    if comm.size == 1:
+        pytest.skip("compares 1 rank with several: run under mpirun -n 2")
+    p_world = str(mpi_tmp_path / "sworld.h5")
+    p_self = str(mpi_tmp_path / f"sself{comm.rank}.h5")
+    run_scene(susp_scene(p_world), PETSc.COMM_WORLD)
+    run_scene(susp_scene(p_self), PETSc.COMM_SELF)
+    comm.barrier()
+    with h5py.File(p_world) as a, h5py.File(p_self) as b:
+        assert a.attrs["n_ranks"] == comm.size
+        for q in ("gamma", "sigma", "pressure", "n_active"):
+            np.testing.assert_array_equal(a["timeseries"][q][:], b["timeseries"][q][:])
+        for k in a["analysis"]:
+            for q in ("delta_gamma", "frozen_omega_min"):
+                assert a["analysis"][k].attrs[q] == pytest.approx(b["analysis"][k].attrs[q], rel=1e-9)
+    comm.barrier()
+
+
+@pytest.mark.parametrize("model, msg", [
+    ("phi = 0.85", "phi_J"),
+    ("ratio = 0.0", "ratio"),
+    ("small_fraction = 1.5", "small_fraction"),
+    ("factor = 'lu'", "factor"),
+])
+def test_bad_scene(model, msg, tmp_path):
+    text = susp_scene(str(tmp_path / "x.h5"))["text"]
+    text = text.replace("phi = 0.8\n", "").replace("[model]\n", f"[model]\n{model}\n")
+    with pytest.raises(InputError, match=msg):
+        load_scene(text)
+
+
+def test_delta_gamma_finds_the_chain_jamming_strain():
+    """On a system whose jamming strain is exact -- the chain, gamma_c = ln(N a0 / Lx(0)) --
+    the backward shear of delta_gamma (direction -1: shear with +1) stops just short of it."""
+    st = chain.build(dict(N=200, epsilon=0.1, mu=0), seed=5)
+    scene = load_scene('[model]\nname = "chain"\n[[protocol.leg]]\ndirection = "forward"\n'
+                       'strain = 1\n')
+    sysm = BondedSystem(PETSc.COMM_SELF, st)
+    try:
+        F0 = sysm.evaluate(st.s, 0.0)
+        factor = 1e6
+        out = msu.delta_gamma(sysm, st, F0, -1, scene, factor, max_strain=1.0)
+    finally:
+        sysm.destroy()
+    gc = st.meta["gamma_c"]
+    assert out["delta_gamma_stop"] in ("target", "jammed")
+    # chain: sigma ~ (gamma_c - gamma)^-3 near jamming, so at sigma = factor sigma_0 the
+    # distance left is ~ gamma_c factor^(-1/3); the extrapolation only gets closer
+    assert gc * (1 - 3 * factor ** (-1 / 3)) < out["delta_gamma_reached"] < gc
+    assert abs(out["delta_gamma"] - gc) <= abs(out["delta_gamma_reached"] - gc)
+
+
+def test_freeze_keeps_force_bearing_contacts():
+    from parflow import suspension as su
+    from parflow.engines import ContactEngine
+    state = su.make_suspension(128, 0.80, seed=2)
+    state.meta.update(msu.controls({}))
+    scene = load_scene('[model]\nname = "suspension"\nN = 128\n[[protocol.leg]]\n'
+                       'direction = "forward"\nstrain = 1\n')
+    eng = ContactEngine(PETSc.COMM_SELF, state, scene, msu)
+    for _ in range(20):
+        eng.step(1, None)
+    F = eng.probe()
+    frozen = msu.freeze(eng.state, F)
+    fb = msu.force_bearing(F.f)
+    assert len(frozen.bonds) == int(fb.sum()) > 0
+    r = (frozen.s[frozen.bonds.j] + frozen.bonds.shift - frozen.s[frozen.bonds.i]) @ frozen.h.T
+    np.testing.assert_allclose(np.linalg.norm(r, axis=1), frozen.bonds.l0, rtol=1e-13)
+    # contacts carrying force are closed: rest length = R_i + R_j up to the LCP's gaps
+    R = eng.state.radii
+    assert np.all(frozen.bonds.l0 >= (R[frozen.bonds.i] + R[frozen.bonds.j]) * (1 - 1e-9))
