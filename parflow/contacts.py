@@ -133,6 +133,11 @@ def _cholmod_solve(M: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray | None:
     it = PETSc.IntType
     A = PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr.astype(it), M.indices.astype(it), M.data),
                               comm=PETSc.COMM_SELF)
+    opts = PETSc.Options()
+    if not opts.hasName("contact_mat_cholmod_print"):
+        # a singular N_AA is routine here (detected, counted and handled below): keep
+        # CHOLMOD from printing "matrix not positive definite" on stderr every time
+        opts.setValue("contact_mat_cholmod_print", 0)
     ksp = PETSc.KSP().create(PETSc.COMM_SELF)
     ksp.setOptionsPrefix("contact_")
     ksp.setType(PETSc.KSP.Type.PREONLY)

@@ -180,9 +180,14 @@ class ContactEngine:
             dg = min(dg, sim.c / sim.sigma)
         if sim.vmax > 0:
             dg = min(dg, sim.dmax / sim.vmax)
-        keep = sim._active_keys
-        _, _, f, V, _, _ = sim.forces(c, dg, direction)
-        sim._active_keys = keep
+        while True:               # as in Suspension.step: an LCP that fails gets a smaller step
+            try:
+                _, _, f, V, _, _ = sim.forces(c, dg, direction)
+                break
+            except self.su.LCPFailure:
+                dg *= 0.1
+                if dg < sim.dg_min:
+                    raise
         sigma = float(np.einsum("id,id->", V, V)) / sim.omega
         return ContactForce(st.gamma, st.h, c, f, V, sigma)
 

@@ -106,3 +106,8 @@ def omega_min(A, k: int = 1) -> float:
     finally:
         sp.destroy()
     return float(omega_from_lambda(lam[:1])[0])
+
+
+if __name__ == "__main__":          # python -m parflow.spectrum STATE.h5 [options]
+    from parflow.spectrum_job import main
+    raise SystemExit(main())

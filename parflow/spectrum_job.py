@@ -1,0 +1,241 @@
+"""Large-N spectrum job on a saved state: ``mpirun -n 2 python -m parflow.spectrum STATE.h5``.
+
+STATE.h5 is a parflow run file (the state at its checkpoint, or at ``--step`` if that step
+has a snapshot) or a network file (``network_build.save_network``, at gamma = 0).  The rods
+of that state give N = S S^T; its spectrum omega = sqrt(lambda(N)) is computed by
+
+* ``--method low`` (default): the ``--k`` lowest eigenpairs, SLEPc Krylov-Schur with
+  shift-and-invert at 0 on the force solver's Cholesky factor (``-spec_...`` options);
+* ``--method interval``: every omega in [``--omega-min``, ``--omega-max``] by SLEPc spectrum
+  slicing (needs the inertia of the factor: MUMPS, ``-spec_st_...`` options);
+* ``--method dense``: all of it with numpy (Nc <= 10 000, rank 0), for checks.
+
+The result goes to ``--output`` (default STATE.spectrum.h5) atomically (a temporary file
+renamed at the end: never half-written), with the source, step, strain, method, sizes,
+wall time and the command line.  Distributed like a run (``--parallel``: auto, replicated,
+redundant, mumps); any ``-option`` with a single dash goes to PETSc.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+from .cli import cmdline_option_names, collective, init_petsc, run_main, split_petsc_args
+from .state import Bonds, InputError, State
+
+METHODS = ("low", "interval", "dense")
+DENSE_MAX = 10_000
+
+
+def parser() -> argparse.ArgumentParser:
+    from .solvers import PARALLEL_FACTORS
+    p = argparse.ArgumentParser(prog="python -m parflow.spectrum",
+                                description="Spectrum of N = S S^T of a saved state.",
+                                epilog="Single-dash options (-spec_eps_ncv 64 ...) go to PETSc/SLEPc.")
+    p.add_argument("state", help="parflow run file or network file")
+    p.add_argument("--step", type=int, default=None,
+                   help="use the snapshot of this step (default: the checkpoint, or the network)")
+    p.add_argument("--method", choices=METHODS, default="low")
+    p.add_argument("--k", type=int, default=6, help="number of lowest pairs for --method low")
+    p.add_argument("--omega-min", type=float, default=0.0, help="--method interval: lower end")
+    p.add_argument("--omega-max", type=float, default=None, help="--method interval: upper end")
+    p.add_argument("--vectors", action="store_true", help="also store the eigenvectors (low)")
+    p.add_argument("--parallel", choices=list(PARALLEL_FACTORS), default="auto")
+    p.add_argument("--output", default=None, help="output HDF5 (default: STATE.spectrum.h5)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    return p
+
+
+def load_state(path: str, step: int | None = None) -> tuple[State, dict]:
+    """(State with bonds at the chosen instant, provenance dict) from a run or network file."""
+    import h5py
+    if not os.path.isfile(path):
+        raise InputError(f"{path!r} does not exist")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise InputError(f"{path!r} is not an HDF5 file") from None
+    with f:
+        if f.attrs.get("format") == "parflow-run-1":
+            init = f["initial"]
+            if "bonds" not in init:
+                raise InputError(f"{path!r} is a run of model {f.attrs.get('model', '?')!s} without "
+                                 f"rods: its spectra are computed by the run's analyses")
+            bd = init["bonds"]
+            bonds = Bonds(bd["i"][()], bd["j"][()], bd["shift"][()], bd["l0"][()])
+            if step is None:
+                if "checkpoint" not in f:
+                    raise InputError(f"{path!r} has no checkpoint: give --step of a snapshot")
+                s, gamma, where = f["checkpoint/s"][()], float(f["checkpoint"].attrs["gamma"]), "checkpoint"
+                step = int(f["checkpoint"].attrs["step"])
+            else:
+                key = f"snapshots/{step:08d}"
+                if key not in f:
+                    have = sorted(int(k) for k in f["snapshots"]) if "snapshots" in f else []
+                    raise InputError(f"{path!r} has no snapshot at step {step} (snapshots: "
+                                     f"{have[:10]}{' ...' if len(have) > 10 else ''}; the scene's "
+                                     f"observables.snapshot_every makes them)")
+                s, gamma, where = f[key]["s"][()], float(f[key].attrs["gamma"]), key
+            state = State(s, init["h0"][()], init["E"][()], gamma, bonds)
+            prov = dict(source_kind="run", where=where, step=step, model=str(f.attrs.get("model", "")))
+        else:
+            f.close()
+            from .models import network as nw
+            from .models import network_build as nb
+            net = nb.load_network(path)
+            if step is not None:
+                raise InputError("--step applies to run files, not to network files")
+            state = nw.state_from_network(net)
+            prov = dict(source_kind="network", where="network", step=0, model="network")
+    return state, prov
+
+
+def _dense_omega(state: State) -> np.ndarray:
+    from .cell import pair_geometry
+    from .models.network import dense_spectrum
+    bd = state.bonds
+    _, _, n, _ = pair_geometry(state.s, state.h, state.E, bd.i, bd.j, bd.shift)
+    return dense_spectrum(n, bd, state.n)
+
+
+def compute(comm, state: State, method: str, k: int = 6, interval=(0.0, None),
+            parallel: str = "auto", vectors: bool = False) -> dict:
+    """The spectrum of the state's N (collective).  Returns dict(omega, [modes], info...)."""
+    from .spectrum import LowSpectrum, omega_from_lambda
+    from .system import BondedSystem
+    nc = len(state.bonds)
+    t0 = time.perf_counter()
+    if method == "dense":
+        if nc > DENSE_MAX:
+            raise InputError(f"--method dense needs Nc <= {DENSE_MAX} (Nc = {nc}): use low or interval")
+        omega = _dense_omega(state) if comm.getRank() == 0 else None
+        omega = comm.tompi4py().bcast(omega, root=0)
+        return dict(omega=omega, seconds=time.perf_counter() - t0, parallel="rank 0")
+    system = BondedSystem(comm, state, "direct", parallel)
+    try:
+        system.evaluate(state.s, state.gamma, what="spectrum job")   # loads N and factors it
+        if method == "low":
+            if not 1 <= k < nc:
+                raise InputError(f"--k must be in [1, Nc) = [1, {nc}), got {k}")
+            spec = LowSpectrum(system.ops.N, k=k, parallel=system.parallel, ksp=system.tau_solver.ksp)
+            try:
+                lam, vecs = spec.solve(vectors=vectors)
+                modes = None
+                if vectors:
+                    modes = np.array([system.ops.gather(v) for v in vecs])
+                    for v in vecs:
+                        v.destroy()
+            finally:
+                spec.destroy()
+            out = dict(omega=omega_from_lambda(lam), eigenvalues=lam)
+            if modes is not None:
+                out["modes"] = modes
+        else:
+            out = _interval(system, *interval)
+        out.update(seconds=time.perf_counter() - t0, parallel=system.parallel)
+        return out
+    finally:
+        system.destroy()
+
+
+def _interval(system, wmin: float, wmax: float | None) -> dict:
+    """Every eigenvalue of N in [wmin^2, wmax^2] by SLEPc spectrum slicing (MUMPS inertia)."""
+    from petsc4py import PETSc
+    from slepc4py import SLEPc
+    from .spectrum import SpectrumError, omega_from_lambda
+    if wmax is None or not (0.0 <= wmin < wmax):
+        raise InputError("--method interval needs 0 <= --omega-min < --omega-max")
+    A = system.ops.N
+    eps = SLEPc.EPS().create(A.getComm())
+    eps.setOptionsPrefix("spec_")
+    eps.setOperators(A)
+    eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+    eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+    eps.setWhichEigenpairs(SLEPc.EPS.Which.ALL)
+    # the lower end slightly below wmin^2 (and below 0 for wmin = 0: N is positive definite)
+    lo = wmin ** 2 * (1 - 1e-9) if wmin > 0 else -1e-10 * wmax ** 2
+    eps.setInterval(lo, wmax ** 2)
+    st = eps.getST()
+    st.setType(SLEPc.ST.Type.SINVERT)
+    ksp = st.getKSP()
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType(PETSc.PC.Type.CHOLESKY)
+    pc.setFactorSolverType("mumps")
+    opts = PETSc.Options()
+    if not opts.hasName("spec_st_mat_mumps_icntl_13"):
+        opts.setValue("spec_st_mat_mumps_icntl_13", 1)     # inertia needs the full factor
+    eps.setFromOptions()
+    try:
+        eps.solve()
+    except PETSc.Error as exc:
+        eps.destroy()
+        raise SpectrumError(f"spectrum slicing failed: {exc}") from None
+    n = eps.getConverged()
+    lam = np.sort(np.array([eps.getEigenvalue(m).real for m in range(n)]))
+    eps.destroy()
+    return dict(omega=omega_from_lambda(lam), eigenvalues=lam)
+
+
+def write(path: str, result: dict, attrs: dict) -> None:
+    """Atomic HDF5 write: temporary file, then rename."""
+    import h5py
+
+    from .io import _attr
+    tmp = path + ".tmp"
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = "parflow-spectrum-1"
+            for k, v in attrs.items():
+                f.attrs[k] = _attr(v)
+            for k, v in result.items():
+                if isinstance(v, np.ndarray):
+                    f.create_dataset(k, data=v)
+                else:
+                    f.attrs[k] = _attr(v)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    app, petsc_args = split_petsc_args(argv, {"--step", "--method", "--k", "--omega-min",
+                                              "--omega-max", "--parallel", "--output"})
+    args = parser().parse_args(app)
+    PETSc = init_petsc(petsc_args)
+    return run_main("parflow.spectrum", lambda: _job(args, argv, petsc_args, PETSc))
+
+
+def _job(args, argv, petsc_args, PETSc) -> int:
+    from . import __version__
+    from .io import check_output_path
+    from .run import git_commit, versions
+    comm = PETSc.COMM_WORLD
+    out = args.output or os.path.splitext(args.state)[0] + ".spectrum.h5"
+    collective(comm, check_output_path, out, args.overwrite)
+    state, prov = collective(comm, load_state, args.state, args.step)
+    res = compute(comm, state, args.method, args.k, (args.omega_min, args.omega_max),
+                  args.parallel, args.vectors)
+    if comm.getRank() == 0:
+        attrs = dict(source=os.path.abspath(args.state), method=args.method, gamma=state.gamma,
+                     n_nodes=state.n, n_rods=len(state.bonds), n_ranks=comm.getSize(),
+                     command=" ".join(["python -m parflow.spectrum"] + list(argv)),
+                     parflow_version=__version__, versions=versions(), git_commit=git_commit(),
+                     created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                     petsc_options=" ".join(petsc_args), **prov)
+        write(out, res, attrs)
+        w = res["omega"]
+        print(f"parflow.spectrum: {len(w)} eigenvalue(s) of N (Nc = {len(state.bonds)}) by "
+              f"{args.method} in {res['seconds']:.2f} s on {comm.getSize()} rank(s); "
+              f"omega_min = {w[0]:.6g}" if len(w) else "no eigenvalue in the interval",
+              file=sys.stderr)
+        print(f"parflow.spectrum: wrote {out}", file=sys.stderr)
+    comm.tompi4py().Barrier()
+    return 0
