@@ -154,7 +154,9 @@ def _cholmod_solve(M: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray | None:
         y = x.getArray().copy()
     except PETSc.Error:
         ok, y = False, None
-    for o in (ksp, A, x, b):
+    # pc too: petsc4py defers the destruction of a dropped wrapper to garbage_cleanup(), and
+    # the PC holds the factor (measured: ~10 MB leaked per call at N_AA = 2000 without this)
+    for o in (ksp, pc, A, x, b):
         o.destroy()
     return y if ok else None
 

@@ -175,11 +175,7 @@ class ContactEngine:
         sim, st = self.sim, self.sim.state
         direction = self._direction if direction is None else direction
         c = self.su.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
-        dg = sim.dg_max
-        if sim.sigma > 0:
-            dg = min(dg, sim.c / sim.sigma)
-        if sim.vmax > 0:
-            dg = min(dg, sim.dmax / sim.vmax)
+        dg = sim.next_dgamma()
         while True:               # as in Suspension.step: an LCP that fails gets a smaller step
             try:
                 _, _, f, V, _, _ = sim.forces(c, dg, direction)
@@ -237,11 +233,27 @@ class ContactEngine:
                     t_search=st.times["search"], t_lcp=st.times["lcp"], t_update=st.times["update"])
 
     # analyses ----------------------------------------------------------------------
+    def _cleanup(self) -> None:
+        """Free the PETSc objects of the frozen-network systems now: petsc4py defers the
+        destruction of dropped wrappers (each holds a factor) to garbage_cleanup()."""
+        import gc
+
+        from petsc4py import PETSc
+        gc.collect()
+        PETSc.garbage_cleanup(PETSc.COMM_SELF)
+        PETSc.garbage_cleanup(self.comm)        # collective: every rank is here
+
     def omega_min(self) -> float:
-        return self.model.frozen_omega_min(self.comm, self.state, self.probe(), self.scene)
+        try:
+            return self.model.frozen_omega_min(self.comm, self.state, self.probe(), self.scene)
+        finally:
+            self._cleanup()
 
     def analyses(self) -> dict:
-        return self.model.analyses(self.comm, self.state, self.probe(), self.scene, self._direction)
+        try:
+            return self.model.analyses(self.comm, self.state, self.probe(), self.scene, self._direction)
+        finally:
+            self._cleanup()
 
     def snapshot(self) -> dict:
         return dict(s=self.s, V_na=self.F.V_na, f=self.F.f, contact_i=self.F.c.i, contact_j=self.F.c.j)

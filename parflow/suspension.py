@@ -52,6 +52,7 @@ PHI_J = 0.843              # shear-jamming packing fraction of the 50:50, 1.4 mi
 SMALL_DIAMETER = 1.0
 RADIUS_RATIO = 1.4
 DEFAULT_SKIN = 0.3
+FIRST_DGAMMA = 1e-4
 
 
 # =========================================================================== initial states
@@ -231,6 +232,19 @@ class Suspension:
         self.last_f = None
         self.last_c = None
 
+    def next_dgamma(self) -> float:
+        """The strain step before the checks of the step: min(dg_max, c/sigma, dmax/max|V|)
+        with sigma and max|V| of the previous step; the first step (no sigma yet) is at most
+        FIRST_DGAMMA (dense initial states have every gap ~1e-6 a0: a large first step
+        makes the cold-start LCP infeasible and costs ~1000 active-set iterations, measured
+        at N = 1024, phi = 0.84)."""
+        dg = self.dg_max if self.steps > 0 else min(self.dg_max, FIRST_DGAMMA)
+        if self.sigma > 0:
+            dg = min(dg, self.c / self.sigma)
+        if self.vmax > 0:
+            dg = min(dg, self.dmax / self.vmax)
+        return dg
+
     def _keys(self, c: Candidates) -> np.ndarray:
         return c.i * self.state.n + c.j
 
@@ -257,11 +271,7 @@ class Suspension:
         t1 = time.perf_counter()
         overlap = float(max(0.0, -c.gap.min())) if len(c) else 0.0
         self.max_overlap = max(self.max_overlap, overlap)
-        dg = self.dg_max
-        if self.sigma > 0:
-            dg = min(dg, self.c / self.sigma)
-        if self.vmax > 0:
-            dg = min(dg, self.dmax / self.vmax)
+        dg = self.next_dgamma()
         sig_max = 2.0 * float(st.radii.max())
         n_fb = 0
         while True:
@@ -373,15 +383,20 @@ def coordination(c: Candidates, f: np.ndarray, n_part: int, d: int = 2,
     can cascade through the whole system (N = 1024, phi = 0.82: z = 0, every particle a
     "rattler"; N = 4096: z = 3.31): a particle with 2 contacts is in force balance with
     its drag, so the jammed-packing definition of a rattler is fragile there; z_all is
-    reported beside it."""
+    reported beside it, and z2: the same iterative removal with fewer than 2 contacts (a
+    particle with one contact is not in force balance without drag)."""
     from .models.packing import remove_rattlers
     fb = f > rel * (f.max() if f.size else 0.0)
     i, j = c.i[fb], c.j[fb]
     rattler, keep = remove_rattlers(n_part, i, j, d)
     n_nr = int(n_part - rattler.sum())
     nc = int(keep.sum())
+    # the milder rule: drop (iteratively) particles with fewer than 2 force-bearing contacts
+    r2, k2 = remove_rattlers(n_part, i, j, 1)
+    n2 = int(n_part - r2.sum())
     return dict(z=2.0 * nc / n_nr if n_nr else 0.0, n_contacts=nc, n_rattlers=int(rattler.sum()),
-                z_all=2.0 * int(fb.sum()) / n_part)
+                z_all=2.0 * int(fb.sum()) / n_part,
+                z2=2.0 * int(k2.sum()) / n2 if n2 else 0.0, n_rattlers2=int(r2.sum()))
 
 
 def observables(susp: Suspension, stats: StepStats) -> dict:

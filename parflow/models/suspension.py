@@ -197,6 +197,36 @@ def delta_gamma(system, frozen: State, F0, direction: int, scene: dict, factor: 
                 arrays=dict(dg_x=xs, dg_sigma=sig))
 
 
+def relaxation_rate(system, frozen: State, F0, direction: int, scene: dict,
+                    rel: float = 1e-3, steps: int = 4) -> dict:
+    """dsigma/dgamma of the suspension between collisions, at this instant: the frozen
+    contacts are the suspension's constraints until a contact opens or a new one closes, so
+    the derivative of the frozen network's sigma along the flow (``direction``) is the
+    suspension's.  ``steps`` Heun steps of strain rel / sigma_0 each; the derivative at 0
+    from a quadratic fit of sigma(x).  C = sigma_0^2 / (-dsigma/dgamma) (paper: constant)."""
+    from ..integrate import Heun, Jammed, StepControl
+    control = StepControl(**scene["integrator"])
+    integ = Heun(system, control)
+    s, g, F = frozen.s, frozen.gamma, F0
+    sigma0 = F.sigma
+    h = rel / max(sigma0, 1e-300)
+    xs, sig = [0.0], [sigma0]
+    try:
+        for _ in range(steps):
+            res = integ.step(s, g, F, direction, h, dg_cap=h)
+            s, g, F = res.s, res.gamma, res.F
+            xs.append(xs[-1] + abs(res.dgamma))
+            sig.append(F.sigma)
+    except Jammed:
+        pass
+    out = dict(relax_dsdg=math.nan, relax_C=math.nan, relax_sigma=sigma0)
+    if len(xs) >= 3:
+        p = np.polyfit(np.array(xs), np.array(sig), min(2, len(xs) - 2))
+        dsdg = float(p[-2])
+        out.update(relax_dsdg=dsdg, relax_C=float(sigma0 ** 2 / -dsdg) if dsdg < 0 else math.nan)
+    return out
+
+
 def force_distribution(f: np.ndarray, bins: int) -> dict:
     """P(f/<f>) of the force-bearing contacts on log-spaced bins from 1e-4 to 1e2."""
     fb = f[force_bearing(f)]
@@ -242,6 +272,8 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
                           resp_f=pr["f_mean"], resp_rods=rods, resp_VV=pr["VV"])
             scalars.update({f"resp_{k}": v for k, v in fit.items()})
             scalars["VV"] = float(np.mean(pr["VV"]))
+        scalars.update(relaxation_rate(system, frozen, Fz, direction, scene))
+        system.load(Fz.n)            # back to the configuration of the instant
         if meta["delta_gamma"]:
             dg = delta_gamma(system, frozen, Fz, direction, scene, meta["delta_gamma_factor"],
                              meta["delta_gamma_max"])
