@@ -302,3 +302,227 @@ def test_run_network_scene(mpi_tmp_path, comm):
     bad = load_scene(scene_text(path + "2", model=f'network_file = "{path}"'))
     with pytest.raises(InputError, match="not a parflow network"):
         Run(bad, PETSc.COMM_WORLD, path + "2", quiet=True).execute()
+
+
+# --------------------------------------------------------------------------- C(r) by FFT
+
+def random_state(n, gamma=0.7, seed=0, noise=0.5, waves=30):
+    """n uniformly random nodes (density 0.74, as in the networks) in a cell sheared by gamma
+    (0.7 > 1/2: the Lees-Edwards remapping matters) and a velocity field correlated over a
+    few a0 (a sum of plane waves that are periodic in the sheared cell) plus white noise."""
+    rng = np.random.default_rng(seed)
+    L = np.sqrt(n / 0.74)
+    h = np.array([[L, gamma * L], [0.0, L]])
+    s = rng.random((n, 2))
+    x = s @ h.T
+    V = noise * rng.standard_normal((n, 2))
+    for _ in range(waves):
+        k = 2 * np.pi * np.linalg.solve(h.T, rng.integers(-5, 6, 2).astype(float))
+        V += rng.standard_normal(2)[None, :] * np.cos(x @ k + 2 * np.pi * rng.random())[:, None]
+    return s, h, V
+
+
+def pair_r2(mi, s, iu, ju):
+    """Squared minimum-image distances of pairs (the reduced-rint formula; below r_max it is
+    the true minimum image, see test_velocity_correlation_against_brute_force)."""
+    sr = mi.reduced(s)
+    return nw._min_image_r2(mi.hr, [sr[ju, c] - sr[iu, c] for c in range(s.shape[1])])
+
+
+@pytest.mark.parametrize("scheme", ["ngp", "cic"])
+def test_fft_correlation_is_the_grid_sum(scheme):
+    """Without exact short-range bins, the FFT method is, to round-off, the sum over pairs
+    i < j of V_i.V_j (and of 1) placed at the grid offsets of their deposits (NGP: nearest
+    points; CIC: all 2^d x 2^d corner pairs with weight w_i w_j), binned by the offset's
+    minimum-image length: the FFT, the removal of the i = j terms (which CIC spreads over
+    offsets -1, 0, 1) and the halving are checked against a direct sum that has no self terms."""
+    s, h, V = random_state(300, seed=4)
+    dr, spacing = 0.5, 0.3
+    out = nw.velocity_correlation_fft(s, h, V, dr, spacing=spacing, scheme=scheme, r_exact=0)
+    assert out["n_exact"] == 0 and out["scheme"] == scheme
+    M = np.array(nw.correlation_grid(h, spacing))
+    np.testing.assert_array_equal(out["grid"], M)
+    mi = nw.MinImage(h)
+    u = mi.reduced(s) * M
+    n = len(s)
+    iu, ju = np.triu_indices(n, 1)
+    dots = np.einsum("pd,pd->p", V[iu], V[ju])
+    nbins = int(mi.rmax / dr)
+    sums, cnt = np.zeros(nbins), np.zeros(nbins)
+    if scheme == "ngp":
+        g = np.floor(u + 0.5)
+        options = [(g, g, np.ones(n), np.ones(n))]
+    else:
+        g0 = np.floor(u)
+        f = u - g0
+        corners = [np.array(c) for c in itertools.product((0, 1), repeat=2)]
+        wts = [np.prod(np.where(c == 1, f, 1 - f), axis=1) for c in corners]
+        options = [(g0 + ci, g0 + cj, wi, wj) for ci, wi in zip(corners, wts)
+                   for cj, wj in zip(corners, wts)]
+    for gi, gj, wi, wj in options:
+        off = (gj[ju] - gi[iu]) / M                      # reduced grid offset of the pair
+        r2 = nw._min_image_r2(mi.hr, [off[:, 0], off[:, 1]])
+        k = (np.sqrt(r2) / dr).astype(int)
+        ok = k < nbins
+        w = (wi[iu] * wj[ju])[ok]
+        sums += np.bincount(k[ok], w * dots[ok], nbins)
+        cnt += np.bincount(k[ok], w, nbins)
+    np.testing.assert_allclose(out["counts"], cnt, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(out["sum_VV"], sums, rtol=1e-9, atol=1e-8)
+    if scheme == "ngp":
+        np.testing.assert_array_equal(out["counts"], cnt)    # integers, rounded
+
+
+@pytest.fixture(scope="module")
+def random_exact():
+    """3000 random nodes at gamma = 0.7 with a correlated field, their exact C(r), and the
+    distance and V_i.V_j of every pair."""
+    s, h, V = random_state(3000, seed=1)
+    ex = nw.velocity_correlation(s, h, V, 0.5)
+    iu, ju = np.triu_indices(len(s), 1)
+    r = np.sqrt(pair_r2(nw.MinImage(h), s, iu, ju))
+    dots = np.einsum("pd,pd->p", V[iu], V[ju])
+    return s, h, V, ex, r, dots
+
+
+@pytest.mark.parametrize("scheme", ["ngp", "cic"])
+def test_fft_correlation_against_exact(scheme, random_exact):
+    """3000 random nodes, gamma = 0.7, a correlated field.  Bins below r_exact: the same
+    pairs as the exact function (counts equal, C to round-off).  Above: every pair is binned
+    at a distance within eps (grid_resolution) of its true one, so a bin can only gain or
+    lose the pairs whose true distance is within eps of one of its edges: |dcounts| <= their
+    number and |dsum| <= the sum of their |V_i.V_j| (computed here from all pairs); C within
+    the bound these imply.  And in practice far better than the bound."""
+    s, h, V, ex, r, dots = random_exact
+    absdot = np.abs(dots)
+    dr = 0.5
+    ff = nw.velocity_correlation_fft(s, h, V, dr, scheme=scheme)
+    eps = ff["eps"]
+    ne = ff["n_exact"]
+    assert ne == int(nw.CORR_R_EXACT / dr) and eps < dr
+    np.testing.assert_array_equal(ff["counts"][:ne], ex["counts"][:ne])
+    np.testing.assert_allclose(ff["C"][:ne], ex["C"][:ne], rtol=1e-10, atol=1e-12)
+    nbins = ex["counts"].size
+    # edges e dr (e = 1..nbins) within eps of a pair: e_lo..e_hi (at most 2 as eps < dr);
+    # such a pair may move between bins e - 1 and e
+    V2 = ex["V2"]
+    near_cnt, near_abs, near_dev2 = (np.zeros(nbins + 1) for _ in range(3))
+    e_lo = np.floor((r - eps) / dr).astype(int) + 1
+    e_hi = np.floor((r + eps) / dr).astype(int)
+    for t in (0, 1):
+        e = e_lo + t
+        m = (e <= e_hi) & (e >= 1) & (e <= nbins)
+        for b in (e[m] - 1, e[m]):
+            near_cnt += np.bincount(b, None, nbins + 1)
+            near_abs += np.bincount(b, absdot[m], nbins + 1)
+            dev = dots[m] - np.append(ex["C"], 0.0)[b] * V2        # v - C(bin) V2
+            near_dev2 += np.bincount(b, np.nan_to_num(dev) ** 2, nbins + 1)
+    near_cnt, near_abs, near_dev2 = near_cnt[:nbins], near_abs[:nbins], near_dev2[:nbins]
+    far = slice(ne, None)
+    dcnt = np.abs(ff["counts"] - ex["counts"])[far]
+    dsum = np.abs(ff["sum_VV"] - ex["sum_VV"])[far]
+    assert np.all(dcnt <= near_cnt[far] + 1e-6)
+    assert np.all(dsum <= near_abs[far] + 1e-6)
+    # C = sum / (counts V2): |dC| <= (|dsum| + |C_ex| V2 |dcounts|) / (counts_fft V2)
+    bound = (near_abs + np.abs(ex["C"]) * V2 * near_cnt) / (ff["counts"] * V2)
+    dC = np.abs(ff["C"] - ex["C"])
+    assert np.all(dC[far] <= bound[far] + 1e-12)
+    # That bound (0.8-1.6 here) assumes every pair near an edge moves the same way.  They
+    # move both ways, so dC is a sum of +-(V_i.V_j - C V2) / (counts V2) over those pairs,
+    # of size ~ their root sum of squares: dC <= 3 rss (measured dC / rss <= 1.0 over 3
+    # seeds x 2 schemes, max dC 0.004 on bins of >= 100 pairs)
+    rss = np.sqrt(near_dev2) / (ff["counts"] * V2)
+    ok = (ex["counts"] >= 100) & (np.arange(nbins) >= ne)
+    assert np.all(dC[ok] <= 3 * rss[ok])
+    assert dC[ok].max() < 0.01 < np.median(bound[ok])
+
+
+def test_fft_correlation_plane_wave():
+    """A circularly polarised plane wave V_i = (cos k.x_i, sin k.x_i), k = 2 pi h^-T m
+    (periodic in the sheared cell): V_i.V_j = cos(k.r_ij), <V^2> = 1.
+
+    (a) Nodes on every point of the FFT grid (no quantisation): C(bin) = mean of cos(k.r_D)
+    over the grid offsets D != 0 whose minimum-image length is in the bin (each offset holds
+    N ordered pairs), for the FFT (both schemes, no exact bins) and for the exact function.
+    (b) 3000 random nodes: C(r) is the ring average of J_0(|k| r) over the bin, up to the
+    sampling noise (< 5 / sqrt(pairs)) and the blur of the bin edges by the grid, second
+    order in eps: (|k| eps)^2 / 2 from the curvature, |k| eps^2 / (2 r) from |r + delta|."""
+    from scipy.special import j1
+    dr, spacing, gamma = 0.5, 0.31, 0.7
+    L = 16.3
+    h = np.array([[L, gamma * L], [0.0, L]])
+    mi = nw.MinImage(h)
+    M = np.array(nw.correlation_grid(h, spacing))
+    g = np.stack(np.meshgrid(*[np.arange(m) for m in M], indexing="ij"), -1).reshape(-1, 2)
+    s = (g / M) @ np.linalg.inv(mi.to_r).T               # h-reduced coordinates of grid points
+    k = 2 * np.pi * np.linalg.solve(h.T, np.array([2.0, -1.0]))
+    ph = (g / M) @ mi.hr.T @ k
+    V = np.column_stack([np.cos(ph), np.sin(ph)])
+    D = g[1:] / M                                        # the offsets D != 0
+    r2 = nw._min_image_r2(mi.hr, [D[:, 0].copy(), D[:, 1].copy()])
+    rD = (D - np.rint(D)) @ mi.hr.T
+    nbins = int(mi.rmax / dr)
+    kb = (np.sqrt(r2) / dr).astype(int)
+    ok = kb < nbins
+    expect = np.bincount(kb[ok], np.cos(rD[ok] @ k), nbins) / np.bincount(kb[ok], None, nbins)
+    ex = nw.velocity_correlation(s, h, V, dr)
+    np.testing.assert_allclose(ex["C"], expect, rtol=0, atol=1e-10)
+    for scheme in ("ngp", "cic"):
+        ff = nw.velocity_correlation_fft(s, h, V, dr, spacing=spacing, scheme=scheme, r_exact=0)
+        np.testing.assert_array_equal(ff["grid"], M)
+        np.testing.assert_allclose(ff["C"], expect, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ff["counts"], ex["counts"], rtol=1e-12, atol=1e-6)
+    # (b) random nodes against the continuum
+    s, h, _ = random_state(3000, seed=2)
+    k = 2 * np.pi * np.linalg.solve(h.T, np.array([2.0, -3.0]))
+    kk = np.linalg.norm(k)
+    ph = (s @ h.T) @ k
+    V = np.column_stack([np.cos(ph), np.sin(ph)])
+    ff = nw.velocity_correlation_fft(s, h, V, dr)
+    assert ff["V2"] == pytest.approx(1.0, rel=1e-12)
+    r1 = np.arange(ff["C"].size) * dr
+    r2_ = r1 + dr
+    ring = 2.0 / (r2_ ** 2 - r1 ** 2) * (r2_ * j1(kk * r2_) - r1 * j1(kk * r1)) / kk
+    ok = ff["counts"] >= 100
+    eps = ff["eps"]
+    tol = 5.0 / np.sqrt(ff["counts"]) + 0.5 * (kk * eps) ** 2 \
+        + kk * eps ** 2 / (2 * np.maximum(r1, dr))
+    assert np.all(np.abs(ff["C"] - ring)[ok] <= tol[ok])
+    assert np.abs(ff["C"] - ring)[ok].max() < 0.03       # measured: 0.012-0.020
+
+
+def test_correlation_method_by_size(monkeypatch, comm, strained):
+    """corr_method "auto": exact up to CORR_EXACT_MAX nodes, FFT above; through the analyses
+    C(r) is computed on rank 0 and broadcast, and equals on every rank, bit for bit, the
+    same computation done locally (the serial result)."""
+    s, h, V = random_state(500, seed=3)
+    assert nw.correlation(s, h, V, 0.5)["method"] == "exact"
+    monkeypatch.setattr(nw, "CORR_EXACT_MAX", 499)
+    out = nw.correlation(s, h, V, 0.5)
+    assert out["method"] == "fft"
+    ref = nw.velocity_correlation_fft(s, h, V, 0.5)
+    np.testing.assert_array_equal(out["C"], ref["C"])
+    with pytest.raises(InputError, match="method must be one of"):
+        nw.correlation(s, h, V, 0.5, method="fast")
+    st = strained[0].copy()
+    sysm = BondedSystem(PETSc.COMM_WORLD, st)
+    F = sysm.evaluate(st.s, st.gamma)
+    monkeypatch.setattr(nw, "CORR_EXACT_MAX", st.n - 1)
+    for method, expect in (("auto", "fft"), ("exact", "exact"), ("fft", "fft")):
+        st.meta.update(correlation=1, corr_method=method, corr_dr=0.25, spectrum="none",
+                       response_rods=1)
+        res = nw.analyses(sysm, st, F)
+        assert res["scalars"]["corr_method"] == expect
+        local = nw.correlation(st.s, F.h, F.V_na, 0.25, 0.0, expect)
+        np.testing.assert_array_equal(res["arrays"]["corr_C"], local["C"])
+        np.testing.assert_array_equal(res["arrays"]["corr_counts"], local["counts"])
+        every = comm.allgather(res["arrays"]["corr_C"])
+        assert all(np.array_equal(c, every[0], equal_nan=True) for c in every)
+        if expect == "fft":                    # a small cell: images in the exact bins
+            assert 0 < res["scalars"]["corr_eps"] < 0.25
+            ne = int(round(res["scalars"]["corr_r_exact"] / 0.25))
+            ex = nw.velocity_correlation(st.s, F.h, F.V_na, 0.25)
+            assert ne == 12 and ex["counts"][ne - 1] > 0
+            np.testing.assert_array_equal(local["counts"][:ne], ex["counts"][:ne])
+            np.testing.assert_allclose(local["C"][:ne], ex["C"][:ne], rtol=1e-10, equal_nan=True)
+    sysm.destroy()
