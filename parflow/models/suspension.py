@@ -5,7 +5,8 @@ and ``parflow.contacts``; the driver runs it through ``engines.ContactEngine``. 
 holds the scene parameters, the builder, and the analyses at chosen instants:
 
 * the contact-force distribution P(f) of the force-bearing contacts (f / <f>);
-* the velocity correlation C(r) of V_na (``network.velocity_correlation``);
+* the velocity correlation C(r) of V_na (``network.correlation``: exact pair sum up to 10^4
+  discs, FFT on a grid above);
 * the **frozen contact network**: the force-bearing contacts become rods at their current
   length (``freeze``).  On it, with the network machinery (``BondedSystem``):
   - omega_min = sqrt(lambda_min(N_fb)) (SLEPc on the force solver's factor);
@@ -252,7 +253,8 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
     arrays.update(force_edges=pf["edges"], force_P=pf["P"])
     scalars.update(force_mean=pf["mean"], n_force_bearing=int(np.count_nonzero(force_bearing(F.f))))
     if meta["correlation"]:
-        cr = nw.velocity_correlation(s, h, F.V_na, meta["corr_dr"], meta["corr_rmax"])
+        cr = nw.correlation(s, h, F.V_na, meta["corr_dr"], meta["corr_rmax"])   # exact / FFT by N
+        scalars["corr_method"] = cr["method"]
         arrays.update(corr_r=cr["r"], corr_C=cr["C"], corr_counts=cr["counts"])
         scalars["corr_length"] = nw.crossing_length(cr["r"], cr["C"], counts=cr["counts"])
     frozen = freeze(state, F)
