@@ -285,7 +285,8 @@ class Run:
         checkpoint()
         if writer:
             writer.set_attrs(status=status, message=message, steps=step,
-                             wall_seconds=time.monotonic() - t_start, **eng.counters())
+                             wall_seconds=time.monotonic() - t_start,
+                             loadavg_end=np.array(os.getloadavg()), **eng.counters())
             writer.flush()
         log.info("%s: %s; %d steps, %.1f s; wrote %s", status, message, step,
                  time.monotonic() - t_start, self.path)

@@ -166,3 +166,35 @@ def test_freeze_keeps_force_bearing_contacts():
     # contacts carrying force are closed: rest length = R_i + R_j up to the LCP's gaps
     R = eng.state.radii
     assert np.all(frozen.bonds.l0 >= (R[frozen.bonds.i] + R[frozen.bonds.j]) * (1 - 1e-9))
+
+
+def test_configuration_file(tmp_path, comm):
+    """A user configuration runs; one with an overlap is refused with the pair named."""
+    from parflow import suspension as su
+    st = su.make_suspension(64, 0.78, seed=4)
+    X = st.s @ st.h.T
+    box = np.diag(st.h0)
+    good = str(tmp_path / f"good{comm.rank}.npz")
+    np.savez(good, positions=X, radii=st.radii, box=box)
+    model = f'configuration_file = "{good}"'
+    text = susp_scene(str(tmp_path / "c.h5"), N=64, phi=st.meta["phi"], model=model)["text"]
+    state = msu.build(load_scene(text)["model"], 1)
+    np.testing.assert_allclose(state.s, st.s, atol=1e-14)
+    bad = str(tmp_path / f"bad{comm.rank}.npz")
+    X2 = X.copy()
+    i, j = 0, int(np.argmin(np.linalg.norm(X[1:] - X[0], axis=1))) + 1
+    X2[j] = X2[i] + 0.5 * (st.radii[i] + st.radii[j]) * np.array([1.0, 0.0])
+    np.savez(bad, positions=X2, radii=st.radii, box=box)
+    with pytest.raises(InputError, match="overlapping"):
+        msu.build(load_scene(text.replace(good, bad))["model"], 1)
+    with pytest.raises(InputError, match="does not match the scene"):
+        msu.build(load_scene(text.replace("N = 64", "N = 65"))["model"], 1)
+
+
+def test_cli_bad_scene_writes_nothing(tmp_path, comm, capsys):
+    from parflow.shear import main
+    out = tmp_path / f"bad{comm.rank}.h5"
+    scene = tmp_path / f"bad{comm.rank}.toml"
+    scene.write_text(susp_scene(str(out))["text"].replace("phi = 0.8\n", "phi = 0.9\n"))
+    assert main([str(scene), "--no-plots"]) == 2
+    assert not out.exists() and not (tmp_path / f"bad{comm.rank}.h5.tmp").exists()

@@ -42,6 +42,9 @@ PARAMS = {
     "ratio": (float, 1.4, lambda v: v > 0, "radius ratio large/small (> 0)"),
     "small_fraction": (float, 0.5, lambda v: 0.0 <= v <= 1.0,
                        "number fraction of small discs in [0, 1] (the rest are large)"),
+    "configuration_file": (str, "", lambda v: True,
+                           "'' (generate) or a .npz file with positions (N, 2), radii (N,), "
+                           "box (2,) and optionally gamma: the initial configuration"),
     "skin": (float, 0.3, lambda v: v > 0, "candidate-pair skin in a0 (> 0)"),
     "c": (float, 0.05, lambda v: v > 0, "step bound dgamma <= c / sigma (> 0)"),
     "dmax": (float, 0.01, lambda v: v > 0, "largest non-affine displacement per step in a0 (> 0)"),
@@ -77,12 +80,47 @@ def build(params: dict, seed: int) -> State:
     p = _defaults(params)
     if p["dg_min"] >= p["dg_max"]:
         raise InputError("model.dg_min must be smaller than model.dg_max")
-    state = su.make_suspension(p["N"], p["phi"], seed=seed, ratio=p["ratio"],
-                               composition=(p["small_fraction"], 1.0 - p["small_fraction"]))
+    su.check_mixture(p["ratio"], (p["small_fraction"], 1.0 - p["small_fraction"]))
+    if p["configuration_file"]:
+        state = load_configuration(p["configuration_file"], p)
+    else:
+        state = su.make_suspension(p["N"], p["phi"], seed=seed, ratio=p["ratio"],
+                                   composition=(p["small_fraction"], 1.0 - p["small_fraction"]))
     state.meta.update(model="suspension", phi_target=float(p["phi"]), ratio=float(p["ratio"]),
                       small_fraction=float(p["small_fraction"]))
     state.meta.update({k: (int(v) if isinstance(v, bool) else v) for k, v in p.items()
                        if k in _CONTROL_KEYS + _ANALYSIS_KEYS})
+    return state
+
+
+def load_configuration(path: str, p: dict) -> State:
+    """A user configuration (.npz: positions, radii, box[, gamma]); refused if it does not
+    match the scene (N, phi to 1e-6) or if discs overlap (``suspension.from_configuration``)."""
+    import os
+
+    from .. import suspension as su
+    if not os.path.isfile(path):
+        raise InputError(f"model.configuration_file {path!r} does not exist")
+    try:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"model.configuration_file {path!r} is not a .npz file: {exc}") from None
+    missing = [k for k in ("positions", "radii", "box") if k not in data]
+    if missing:
+        raise InputError(f"model.configuration_file {path!r} lacks {', '.join(missing)} "
+                         f"(needs positions (N, 2), radii (N,), box (2,), optionally gamma)")
+    state = su.from_configuration(data["positions"], data["radii"], data["box"],
+                                  float(data.get("gamma", 0.0)))
+    bad = []
+    if state.n != p["N"]:
+        bad.append(f"N = {state.n} (scene: model.N = {p['N']})")
+    if abs(state.meta["phi"] - p["phi"]) > 1e-6:
+        bad.append(f"phi = {state.meta['phi']:.8g} (scene: model.phi = {p['phi']:g})")
+    if bad:
+        raise InputError(f"model.configuration_file {path!r} does not match the scene: "
+                         + "; ".join(bad))
+    state.meta.update(configuration_file=path, initial_min_gap=su.min_gap(state))
     return state
 
 

@@ -1,0 +1,113 @@
+"""Speed of the hard-disc suspension (issue 4 target: 300 % strain at N = 4096, phi = 0.82 in
+<= 20 minutes on 2 cores; how phi = 0.84 scales and what bounds it).
+
+Runs the Figs. 6-7 scenes (runs/fig6_suspension_phi*.toml, N = 4096, 4.0 strain with
+analyses over the last 1.0), or reads run files that already exist (``--from-runs``), and
+writes docs/benchmarks/suspension.json: wall time of the step loop, strain per hour over the
+first 3.0 strain (no analyses there), per-step breakdown (neighbour search, LCP of which
+factorisations, position update), factorisations and active-set iterations per step,
+singular active sets, collisions, the time of the analyses, and the machine's load.
+
+    python benchmarks/bench_suspension.py --from-runs out/fig6_suspension_phi0.8*.h5
+    python benchmarks/bench_suspension.py --phi 0.820,0.830,0.840 [--ranks 1]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+
+import results  # noqa: E402  (benchmarks/results.py)
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+
+
+def summarise(path: str, transient: float = 3.0) -> dict:
+    """Timings of one suspension run file."""
+    with h5py.File(path) as f:
+        ts = {k: f["timeseries"][k][()] for k in f["timeseries"]}
+        a = dict(f.attrs)
+        n_an = len(f["analysis"]) if "analysis" in f else 0
+        phi = float(f["model"].attrs.get("phi", np.nan))
+    strain, wall = ts["strain"], ts["wall"]
+    m = (ts["step"] > 0) & (strain <= transient + 1e-12)
+    k = np.flatnonzero(m)
+    rec = dict(file=os.path.relpath(path, ROOT), status=str(a["status"]), phi=phi, loadavg_end=[float(x) for x in a.get("loadavg_end", [])],
+               n_ranks=int(a["n_ranks"]), steps=int(a["steps"]),
+               strain=float(strain[-1]), loop_seconds=round(float(a.get("wall_seconds", wall[-1])), 1),
+               max_overlap=float(a.get("max_overlap", np.nan)),
+               singular_events=int(a.get("singular_events", 0)),
+               collisions=int(a.get("collisions", 0)), analyses=n_an)
+    if k.size > 1:
+        x0, x1 = float(strain[k[0] - 1]), float(strain[k[-1]])
+        t = float(wall[k[-1]] - wall[k[0] - 1])
+        rec.update(window_strain=round(x1 - x0, 4), window_seconds=round(t, 1),
+                   strain_per_hour=round((x1 - x0) / t * 3600, 2),
+                   minutes_per_300pc=round(3.0 / ((x1 - x0) / t) / 60, 1),
+                   steps_per_second=round(k.size / t, 2),
+                   mean_dgamma=float(np.mean(np.abs(ts["dgamma"][k]))),
+                   ms_search=round(1e3 * float(np.mean(ts["t_search"][k])), 2),
+                   ms_lcp=round(1e3 * float(np.mean(ts["t_lcp"][k])), 2),
+                   ms_update=round(1e3 * float(np.mean(ts["t_update"][k])), 2),
+                   ms_other=round(1e3 * (t / k.size - float(np.mean(ts["t_search"][k] + ts["t_lcp"][k]
+                                                                    + ts["t_update"][k]))), 2),
+                   factorizations_per_step=round(float(np.mean(ts["factorizations"][k])), 2),
+                   factorizations_max=int(np.max(ts["factorizations"][k])),
+                   lcp_iterations_per_step=round(float(np.mean(ts["lcp_iterations"][k])), 2),
+                   collisions_per_step=round(float(np.mean(ts["n_coll"][k])), 2),
+                   active_per_step=round(float(np.mean(ts["n_active"][k])), 1),
+                   singular_steps=int(np.count_nonzero(ts["singular"][k])))
+    if n_an and k.size:
+        after = (ts["step"] > 0) & (strain > transient)
+        j = np.flatnonzero(after)
+        if j.size > 1:
+            t_after = float(wall[j[-1]] - wall[j[0] - 1])
+            rate = rec["steps_per_second"]
+            rec["analysis_seconds_each"] = round(max(0.0, (t_after - j.size / rate)) / n_an, 1)
+    return rec
+
+
+def run(scene: str, out: str, ranks: int) -> None:
+    cmd = [sys.executable, "-m", "parflow.shear", scene, "--output", out, "--overwrite",
+           "--quiet", "--no-plots"]
+    if ranks > 1:
+        cmd = [shutil.which("mpirun") or "mpirun", "-n", str(ranks)] + cmd
+    subprocess.run(cmd, check=True, cwd=ROOT)
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--from-runs", nargs="*", default=None, help="summarise these run files")
+    p.add_argument("--phi", default="0.820,0.830,0.840")
+    p.add_argument("--ranks", type=int, default=1)
+    a = p.parse_args()
+    load0 = os.getloadavg()
+    if a.from_runs is None:
+        paths = []
+        for phi in a.phi.split(","):
+            scene = os.path.join(ROOT, "runs", f"fig6_suspension_phi{phi}.toml")
+            out = os.path.join(ROOT, "out", f"bench_suspension_phi{phi}.h5")
+            run(scene, out, a.ranks)
+            paths.append(out)
+        cmd = f"python3 benchmarks/bench_suspension.py --phi {a.phi} --ranks {a.ranks}"
+    else:
+        paths = a.from_runs
+        cmd = "python3 benchmarks/bench_suspension.py --from-runs " + " ".join(
+            os.path.relpath(x, ROOT) for x in paths)
+    recs = [summarise(x) for x in sorted(paths)]
+    data = dict(benchmark="hard-disc suspension, N = 4096 (parflow issue 4)", command=cmd,
+                date=time.strftime("%Y-%m-%d %H:%M:%S"), loadavg=list(load0),
+                note=("from-runs: the runs were made while other jobs shared the 2 cores; "
+                      "see the load average" if a.from_runs is not None else ""),
+                results=recs)
+    print(results.write("suspension", data))
+
+
+if __name__ == "__main__":
+    main()
