@@ -139,18 +139,20 @@ def test_chain_fits_on_synthetic_run(tmp_path):
 
 
 def test_main_default_outdir_and_skips(tmp_path, capsys):
-    """A non-chain model without omega_min: only the generic figures, into FILE-stem_plots."""
-    src = tmp_path / "net.h5"
-    _synthetic(src, model="network", analysis=False, omega=False)
+    """A model with no figures of its own, without omega_min: only the generic figures,
+    into FILE-stem_plots."""
+    src = tmp_path / "susp.h5"
+    _synthetic(src, model="suspension", analysis=False, omega=False)
     assert plot.main([str(src)]) == 0
     out, err = capsys.readouterr()
-    folder = tmp_path / "net_plots"
+    folder = tmp_path / "susp_plots"
     written = out.split()
     assert written == [str(folder / f"{n}.png") for n in ("stress_strain", "step_diagnostics")]
     assert all(_is_png(p) for p in written)
     for name in ALL:
         if name.startswith("chain_"):
-            assert f"skipped {name}: model is 'network'" in err
+            assert f"skipped {name}: model is 'suspension', not chain" in err
+    assert "skipped fig5_dos: model is 'suspension', not network" in err
     assert "skipped omega_min: omega_min was not computed" in err
 
 
@@ -218,3 +220,291 @@ def test_module_entry_point_without_petsc(tmp_path):
                        timeout=120)
     assert r.stdout.strip() == "exit 2 imported []", r.stdout + r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "no such file" in r.stderr
+
+
+# ---------------------------------------------------------------------------------------
+# Networks (paper Figs. 3, 4, 5, 8)
+# ---------------------------------------------------------------------------------------
+NET_FIGS = ["fig3a_sigma", "fig3b_reverse", "fig4_omega_min", "fig5_dos", "fig8_correlation",
+            "fig8_response"]
+ACROSS = ["fig3a_sigma_z", "fig3b_reverse_z", "fig4_omega_min_z", "fig5_dos_z"]
+SIGMA_TURN = 1e6
+
+
+def _gap_spectrum(omega_star, nc=3000, Dp=0.4, rng=None):
+    """Nc frequencies with D = Dp above a sharp gap omega_star, 0 below: evenly spaced
+    quantiles (rng None) or random draws."""
+    u = (np.arange(nc) + 0.5) / nc if rng is None else np.sort(rng.random(nc))
+    return omega_star + u / Dp
+
+
+def _network_synthetic(path, *, z=3.8, C=0.035, C2=0.13, omega_star=0.04, lr_k=2.5, B0=0.2,
+                       analysis=True, spectrum="dense", omega=True, reverse=True, seed=1):
+    """A network-like run: forward sigma 5 -> 1e6, then the exact reversed law
+    1/sigma = 1/sigma_turn + x/C (x: strain since the reversal) down to sigma = 10;
+    omega_min = C2/sqrt(sigma) every other row; analysis instants with a sharp-gap spectrum
+    (omega*), C(r), and a point response A e^(-r/l_c) + B e^(-r/l_r) with l_r = lr_k
+    sqrt(sigma), B = B0/sqrt(sigma) (V sqrt(sigma) collapses exactly in the tail)."""
+    dz = 4.0 - z
+    nf = 120
+    s_f = np.geomspace(5.0, SIGMA_TURN, nf)
+    g_f = np.linspace(0.0, 0.08, nf)
+    if reverse:
+        x_end = C * (1 / 10.0 - 1 / SIGMA_TURN)
+        x = np.r_[np.geomspace(1e-9, x_end, 150)]
+        s_r = 1.0 / (1.0 / SIGMA_TURN + x / C)
+        g_r = g_f[-1] - x
+    else:
+        x = s_r = g_r = np.array([])
+    gamma, sigma = np.r_[g_f, g_r], np.r_[s_f, s_r]
+    n = gamma.size
+    direction = np.r_[np.ones(nf, int), -np.ones(n - nf, int)]
+    strain = np.r_[g_f, g_f[-1] + x]
+    dgamma = np.r_[0.0, np.diff(gamma)]
+    wmin = np.where(np.arange(n) % 2 == 0, C2 / np.sqrt(sigma), np.nan) if omega \
+        else np.full(n, np.nan)
+    ts = dict(step=np.arange(n), gamma=gamma, strain=strain, leg=(direction < 0).astype(int),
+              direction=direction, dgamma=dgamma, err=np.full(n, 0.03),
+              rejected=np.zeros(n, int), sigma=sigma, sigma_tb=sigma,
+              sigma_mismatch=1e-14 * sigma, pressure=sigma / 3, V2=sigma, omega_min=wmin,
+              length_error=np.full(n, 1e-13), z=np.full(n, z))
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "parflow-run-1"
+        f.attrs["model"] = "network"
+        f.attrs["scene"] = (f'seed = {seed}\n[model]\nname = "network"\nN = 256\nz = {z}\n'
+                            f'spectrum = "{spectrum}"\n')
+        f.attrs["status"] = "complete"
+        m = f.create_group("model")
+        m.attrs.update(dict(z=z, dz=dz, n_nodes=250, network_seed=seed))
+        t = f.create_group("timeseries")
+        for k, v in ts.items():
+            t.create_dataset(k, data=v, maxshape=(None,))
+        if analysis:
+            r = (np.arange(80) + 0.5) * 0.5
+            for row in sorted({0, 40, 80, nf - 1, min(nf + 60, n - 1), n - 1}):
+                sg = sigma[row]
+                lc, lr, A, B = 2.0, lr_k * np.sqrt(sg), 0.5, B0 / np.sqrt(sg)
+                grp = f.create_group(f"analysis/{row:08d}")
+                grp.create_dataset("resp_r", data=r)
+                grp.create_dataset("resp_V", data=A * np.exp(-r / lc) + B * np.exp(-r / lr))
+                grp.create_dataset("resp_counts_V", data=np.full(r.size, 30.0))
+                grp.create_dataset("corr_r", data=r)
+                grp.create_dataset("corr_C", data=np.exp(-r / lc) + 0.05 * np.exp(-r / lr))
+                grp.create_dataset("corr_counts", data=np.full(r.size, 1e3))
+                if spectrum == "dense":
+                    grp.create_dataset("omega", data=_gap_spectrum(omega_star))
+                elif spectrum == "low":
+                    grp.create_dataset("omega_low", data=np.geomspace(1e-3, 1e-2, 10))
+                grp.attrs.update(dict(step=row, gamma=gamma[row], sigma=sg, resp_l_c=lc,
+                                      resp_l_r=lr, resp_A=A, resp_B=B, VV=1.0))
+    return dict(dz=dz)
+
+
+def test_network_figures_and_fits_on_synthetic_run(tmp_path):
+    src = tmp_path / "net.h5"
+    _network_synthetic(src, C=0.035, C2=0.13, omega_star=0.04)
+    res = plot.make_plots(str(src), str(tmp_path / "o"))
+    assert not res.failed, res.failed
+    names = [os.path.splitext(os.path.basename(p))[0] for p in res.written]
+    assert names == ["stress_strain", "step_diagnostics", "omega_min"] + NET_FIGS
+    assert all(_is_png(p) for p in res.written)
+    f = res.fits
+    # Fig. 3b: the exact law 1/sigma = 1/sigma_turn + x/C gives slope 2 and C
+    rv = f["reverse"]
+    assert rv["n"] > 10
+    assert rv["slope"] == pytest.approx(2.0, abs=1e-6)
+    assert rv["C"] == pytest.approx(0.035, rel=1e-6)
+    # Fig. 4: omega_min = C2 / sqrt(sigma)
+    om = f["omega_min"]
+    assert om["forward"][0] == pytest.approx(-0.5, abs=1e-9)
+    assert om["reverse"][0] == pytest.approx(-0.5, abs=1e-9)
+    assert om["C2"] == pytest.approx(0.13, rel=1e-9)
+    # Fig. 5: the sharp gap, to within the spacing of the modes (1/(Nc D_p))
+    ost = f["omega_star"]
+    assert len(ost["instants"]) == 6
+    assert ost["omega_star"] == pytest.approx(0.04, abs=2 / (3000 * 0.4))
+    # Fig. 8: l_r = 2.5 sqrt(sigma), B sqrt(sigma) = 0.2 on the resolved instants
+    resp = f["response"]
+    res_inst = [x for x in resp["instants"] if x["resolved"]]
+    assert 2 <= len(res_inst) < 6              # l_r beyond r_max / 2 at large sigma
+    assert resp["l_r_vs_sigma"]["exponent"] == pytest.approx(0.5, abs=1e-9)
+    assert all(x["lr_over_sqrt_sigma"] == pytest.approx(2.5) for x in res_inst)
+    assert all(x["B_sqrt_sigma"] == pytest.approx(0.2) for x in res_inst)
+    assert plot.format_fits(f)
+
+
+def test_fit_omega_star_sharp_and_scaled_gaps():
+    """Exact for a sharp gap (any fraction); proportional to the gap for a smooth edge."""
+    for ws in (0.01, 0.05, 0.12):
+        w = _gap_spectrum(ws, nc=4000)
+        for frac in (0.3, 0.5, 0.7):
+            r = plot.fit_omega_star(w, fraction=frac, n_boot=0)
+            assert r["omega_star"] == pytest.approx(ws, abs=1.5 / (4000 * 0.4)), (ws, frac)
+            assert r["D_plateau"] == pytest.approx(0.4, rel=0.01)
+    # smooth edge D = Dp * min(1, (omega/wg)^2) below a flat plateau: omega* is proportional
+    # to wg (inverse CDF sampling, evenly spaced quantiles)
+    def smooth(wg, nc=20000, Dp=0.4):
+        u = (np.arange(nc) + 0.5) / nc          # F(w) = Dp w^3 / (3 wg^2) below wg
+        Fg = Dp * wg / 3
+        return np.where(u < Fg, (3 * u * wg ** 2 / Dp) ** (1 / 3), wg + (u - Fg) / Dp)
+    a = plot.fit_omega_star(smooth(0.02), n_boot=0)["omega_star"]
+    b = plot.fit_omega_star(smooth(0.06), n_boot=0)["omega_star"]
+    assert b / a == pytest.approx(3.0, rel=0.01)
+    assert 0.02 * 2 / 3 * 0.9 < a < 0.02     # the "missing modes" of the edge: (2/3) wg
+    # no plateau above the gap (gap too wide for the window): NaN, not a wrong number
+    assert np.isnan(plot.fit_omega_star(_gap_spectrum(0.5), n_boot=0)["omega_star"])
+    assert np.isnan(plot.fit_omega_star([0.1, 0.2])["omega_star"])
+
+
+def test_fit_omega_star_exponent_on_random_spectra():
+    """omega* = 0.15 (dz/0.4)^b on random spectra (Nc = 10^4 uniform draws above the gap) at five
+    dz: the fit recovers b within its error, for b = 1 and b = 1.5, and the bootstrap error
+    is of the right size."""
+    rng = np.random.default_rng(3)
+    dz = np.array([0.05, 0.1, 0.2, 0.3, 0.4])
+    for b in (1.0, 1.5):
+        vals, errs = [], []
+        for d in dz:
+            r = plot.fit_omega_star(_gap_spectrum(0.15 * (d / 0.4) ** b, nc=10_000, rng=rng),
+                                    n_boot=100, seed=1)
+            vals.append(r["omega_star"])
+            errs.append(r["err"])
+        vals, errs = np.array(vals), np.array(errs)
+        assert np.all(errs > 0) and np.all(errs < 0.5 * vals)
+        assert np.all(np.abs(vals - 0.15 * (dz / 0.4) ** b) < 4 * errs)
+        fit = plot.fit_power_law_err(dz, vals, errs)
+        assert fit["n"] == 5 and fit["dof"] == 3
+        assert 0 < fit["err"] < 0.1
+        assert abs(fit["exponent"] - b) < 3 * fit["err"]
+
+
+def test_fit_power_law_err():
+    x = np.array([0.1, 0.2, 0.3, 0.4])
+    y = 2.0 * x ** -0.5
+    f = plot.fit_power_law_err(x, y, 0.01 * y)
+    assert f["exponent"] == pytest.approx(-0.5, abs=1e-12)
+    assert f["prefactor"] == pytest.approx(2.0)
+    assert f["err"] > 0 and f["chi2"] == pytest.approx(0, abs=1e-12)
+    # scatter larger than the error bars: the error grows with sqrt(chi2/dof)
+    y2 = y * np.array([1.1, 0.9, 1.1, 0.9])
+    small = plot.fit_power_law_err(x, y2, 0.001 * y2)
+    large = plot.fit_power_law_err(x, y2, 0.1 * y2)
+    assert small["err"] == pytest.approx(large["err"], rel=1e-6)   # Birge-scaled below
+    assert np.isnan(plot.fit_power_law_err([1.0], [1.0])["exponent"])
+    assert np.isnan(plot.fit_power_law_err([1.0, 2.0], [1.0, 2.0])["err"])   # no dof
+
+
+def test_across_runs_figures_and_exponents(tmp_path, capsys):
+    """Three runs at dz = 0.1, 0.2, 0.4 with C = 0.016 dz^-1/2, C2 = 0.3 dz^1/2,
+    omega* = 0.2 dz: the across-run figures, and the fitted exponents."""
+    paths = []
+    for z in (3.6, 3.8, 3.9):
+        dz = 4.0 - z
+        p = tmp_path / f"net_z{z}.h5"
+        _network_synthetic(p, z=z, C=0.016 * dz ** -0.5, C2=0.3 * dz ** 0.5,
+                           omega_star=0.2 * dz)
+        paths.append(str(p))
+    out = tmp_path / "figs"
+    only = [a for n in ACROSS + ["fig3a_sigma"] for a in ("--only", n)]
+    assert plot.main(paths + ["--outdir", str(out)] + only) == 0
+    o, err = capsys.readouterr()
+    written = o.split()
+    for name in ACROSS:
+        assert str(out / f"{name}.png") in written
+    for p in paths:                                   # each file's own figures in out/<stem>/
+        stem = os.path.splitext(os.path.basename(p))[0]
+        assert str(out / stem / "fig3a_sigma.png") in written
+    assert all(_is_png(p) for p in written)
+    assert "across runs: omega* ~ dz^b" in err
+    runs = [plot.load_run(p) for p in paths]
+    ac = plot.across_fits([plot.network_fits(r) for r in runs])
+    assert ac["C"]["fit"]["exponent"] == pytest.approx(-0.5, abs=1e-6)
+    assert ac["C2"]["fit"]["exponent"] == pytest.approx(0.5, abs=1e-6)
+    assert ac["omega_star"]["fit"]["exponent"] == pytest.approx(1.0, abs=0.02)
+    # one run only: the across-run figures are skipped with the reason
+    res = plot.make_across_plots(paths[:1], str(tmp_path / "one"))
+    assert res.written == [] and not res.failed
+    assert all("needs 2 or more network runs" in why for _, why in res.skipped)
+
+
+def test_network_run_without_analyses_skips_figures(tmp_path, capsys):
+    """No analysis groups and no omega_min: Figs. 4, 5, 8 are skipped with a message, the
+    others drawn; a 'low' spectrum says why there is no D(omega)."""
+    src = tmp_path / "bare.h5"
+    _network_synthetic(src, analysis=False, omega=False)
+    only = [a for n in NET_FIGS for a in ("--only", n)]
+    assert plot.main([str(src), "--out", str(tmp_path / "o")] + only) == 0
+    out, err = capsys.readouterr()
+    names = [os.path.splitext(os.path.basename(p))[0] for p in out.split()]
+    assert names == ["fig3a_sigma", "fig3b_reverse"]
+    assert "skipped fig4_omega_min: omega_min was not computed" in err
+    assert "skipped fig5_dos: no analysis groups with a spectrum" in err
+    assert "skipped fig8_correlation: no analysis groups with corr_C" in err
+    assert "skipped fig8_response: no analysis groups with the point response" in err
+    low = tmp_path / "low.h5"
+    _network_synthetic(low, spectrum="low", reverse=False, omega=False)
+    res = plot.make_plots(str(low), str(tmp_path / "o2"), only=NET_FIGS)
+    assert not res.failed
+    why = dict(res.skipped)
+    assert "model.spectrum = 'low'" in why["fig5_dos"]
+    assert "no reversed branch" in why["fig3b_reverse"]
+    # across runs with neither spectra nor omega_min: those figures skip, the rest draw
+    res = plot.make_across_plots([str(src), str(low)], str(tmp_path / "o3"))
+    assert not res.failed
+    assert [os.path.basename(p) for p in res.written] == ["fig3a_sigma_z.png",
+                                                           "fig3b_reverse_z.png"]
+    assert {n for n, _ in res.skipped} == {"fig4_omega_min_z", "fig5_dos_z"}
+
+
+def test_several_files_one_missing(tmp_path, capsys):
+    src = tmp_path / "net.h5"
+    _network_synthetic(src, analysis=False)
+    msg = _one_line_error(capsys, [str(src), str(tmp_path / "nope.h5"), "--outdir",
+                                   str(tmp_path / "o")])
+    assert "nope.h5" in msg and "no such file" in msg
+    assert not (tmp_path / "o").exists()
+
+
+def test_tiny_network_run_draws_the_network_figures(mpi_tmp_path, comm, tmp_path):
+    """A real run through the driver (N = 128, forward to sigma = 1e4 and back, dense
+    spectrum, C(r), point response, omega_min): every network figure is drawn, none fails.
+    Under MPI the ranks run it together, then each draws into its own folder."""
+    from petsc4py import PETSc
+
+    from parflow.run import Run, setup_logging
+    from parflow.scene import load_scene
+    path = str(mpi_tmp_path / "tiny_net.h5")
+    scene = load_scene(f"""
+seed = 7
+[model]
+name = "network"
+N = 128
+z = 3.8
+spectrum = "dense"
+[[protocol.leg]]
+direction = "forward"
+sigma_above = 1e4
+[[protocol.leg]]
+direction = "reverse"
+sigma_below = 20
+strain = 0.05
+[observables]
+omega_min_every = 2
+analysis_quantity = "sigma"
+analysis_per_decade = 1
+[output]
+path = "{path}"
+""")
+    setup_logging(PETSc.COMM_WORLD, quiet=True)
+    assert Run(scene, PETSc.COMM_WORLD, path, quiet=True).execute() == "complete"
+    comm.Barrier()
+    res = plot.make_plots(path, str(tmp_path / "figs"), only=NET_FIGS)
+    assert not res.failed, res.failed
+    names = [os.path.splitext(os.path.basename(p))[0] for p in res.written]
+    assert names == NET_FIGS
+    assert all(_is_png(p) for p in res.written)
+    f = res.fits
+    assert f["omega_min"]["n"] > 0 and np.isfinite(f["omega_min"]["C2"])
+    assert len(f["omega_star"]["instants"]) >= 4
+    assert f["reverse"]["branch"]["sigma"].size > 3
+    comm.Barrier()
