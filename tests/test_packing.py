@@ -1,5 +1,6 @@
-"""Jammed soft-disc packings (parflow.models.packing).  Serial numpy only: under
-``mpirun -n N`` every rank runs these independently."""
+"""Jammed soft-disc packings (parflow.models.packing).  Serial (numpy kernel, and the
+optional numba kernel with 1 or 2 threads): under ``mpirun -n N`` every rank runs these
+independently."""
 import numpy as np
 import pytest
 
@@ -162,34 +163,117 @@ def test_tiny_tolerance_stops_at_round_off_floor():
     assert p.max_force < pk.force_floor(p.box)
 
 
-@pytest.mark.skipif(not pk.have_numba(), reason="numba not installed (optional kernel)")
-@pytest.mark.parametrize("d", [2, 3])
-def test_numba_kernel_is_bit_identical_to_numpy(d):
-    rng = np.random.default_rng(d)
-    n = 200
+needs_numba = pytest.mark.skipif(not pk.have_numba(), reason="numba not installed (optional kernel)")
+
+
+def _random_state(d, n=200, seed=None):
+    rng = np.random.default_rng(d if seed is None else seed)
     radii = pk.binary_radii(n)
     L = pk.box_side(radii, 0.9 if d == 2 else 0.7, d)
     box = np.full(d, L)
     X = (rng.random((n, d)) * L).T.copy()
+    return radii, box, X, rng
+
+
+@needs_numba
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_numba_kernel_is_bit_identical_to_numpy(d, threads):
+    """Same pair list (cell list vs cKDTree), same forces, overlaps and FIRE reductions,
+    to the last bit, also after the particles moved (unwrapped) within skin/2.  N spans
+    several reduction blocks, so with 2 threads both threads work."""
+    from parflow.models import packing_numba
+    if threads > packing_numba.max_threads():
+        pytest.skip(f"numba has {packing_numba.max_threads()} thread(s) here (CPU affinity)")
+    radii, box, X, rng = _random_state(d, n=2 * pk.BLOCK + 300)
+    dX = 0.19 * (rng.random(X.shape) - 0.5)        # |dX| < skin/2 = 0.2
+    V = rng.random(X.shape) - 0.5
     out = {}
     for kernel in ("numpy", "numba"):
-        pl = pk._PairList(radii, box, 0.4, kernel)
-        Xk = pl.build(X.copy())
-        F = np.empty_like(Xk)
-        ov = pl.forces(Xk, F)
-        out[kernel] = (F.copy(), ov.copy())
-    assert np.array_equal(out["numpy"][0], out["numba"][0])
-    assert np.array_equal(out["numpy"][1], out["numba"][1])
+        pl = pk._PairList(radii, box, 0.4, kernel, threads if kernel == "numba" else None)
+        with pl.threads_set():
+            Xk = pl.build(X.copy())
+            half = tuple(a.copy() for a in (pl.i, pl.j, pl.S, pl.isig))
+            Xk = Xk + dX
+            F = np.empty_like(Xk)
+            ov = pl.forces(Xk, F)
+            G = np.empty_like(Xk)
+            red = pl.step(Xk, V, G, 0.37)
+            Xu, Vu = Xk.copy(), V.copy()
+            vmax2 = pl.update(Xu, Vu, G, 0.05, False, 0.9, 0.013)
+            Xb, Vb = Xk.copy(), V.copy()
+            pl.update(Xb, Vb, G, 0.05, True, 0.9, None)
+            disp = pl.max_displacement(Xu)
+        out[kernel] = (half, F, ov, G, red, Xu, Vu, vmax2, Xb, Vb, disp)
+    a, b = out["numpy"], out["numba"]
+    for x, y in zip(a[0], b[0]):
+        assert np.array_equal(x, y)
+    assert np.all(a[0][0] < a[0][1])
+    assert np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
+    assert np.array_equal(a[1], a[3]) and np.array_equal(b[1], b[3])
+    assert a[4] == b[4]
+    for x, y in zip(a[5:], b[5:]):
+        assert np.array_equal(x, y)
 
 
-@pytest.mark.skipif(not pk.have_numba(), reason="numba not installed (optional kernel)")
+@needs_numba
+def test_cell_list_finds_every_pair():
+    """The cell list lists exactly the pairs closer than R_i + R_j + skin (brute force)."""
+    radii, box, X, _ = _random_state(2, n=300, seed=7)
+    pl = pk._PairList(radii, box, 0.4, "numba", 1)
+    Xw = pl.build(X.copy())
+    i, j = np.triu_indices(radii.size, 1)
+    dr = Xw.T[j] - Xw.T[i]
+    dr -= box * np.round(dr / box)
+    m = (dr ** 2).sum(1) < (radii[i] + radii[j] + 0.4) ** 2
+    assert set(zip(pl.i.tolist(), pl.j.tolist())) == set(zip(i[m].tolist(), j[m].tolist()))
+
+
+@needs_numba
 def test_numba_packing_equals_numpy_packing(pack):
     p = pk.make_packing(128, 0.88, seed=3, kernel="numba")
     q = pk.make_packing(128, 0.88, seed=3, kernel="numpy")
     assert p.info["kernel"] == "numba" and q.info["kernel"] == "numpy"
+    assert p.info["threads"] == 1
     assert np.array_equal(p.positions, q.positions)
+    assert np.array_equal(p.contacts_j, q.contacts_j)
+    assert p.iterations == q.iterations and p.info["n_builds"] == q.info["n_builds"]
     assert np.array_equal(p.positions, pack.positions)
     assert p.iterations == pack.iterations
+
+
+@needs_numba
+def test_numba_3d_packing_equals_numpy():
+    p = pk.make_packing(128, 0.72, d=3, seed=2, kernel="numba")
+    q = pk.make_packing(128, 0.72, d=3, seed=2, kernel="numpy")
+    assert np.array_equal(p.positions, q.positions) and p.iterations == q.iterations
+
+
+def test_block_sum_order():
+    """The fixed summation order of the FIRE reductions: blocks of BLOCK in order."""
+    rng = np.random.default_rng(5)
+    t = rng.standard_normal(2 * pk.BLOCK + 17) * 10.0 ** rng.integers(-8, 8, 2 * pk.BLOCK + 17)
+    parts = []
+    for k in range(0, t.size, pk.BLOCK):
+        s = 0.0
+        for x in t[k:k + pk.BLOCK].tolist():
+            s += x
+        parts.append(s)
+    total = 0.0
+    for x in parts:
+        total += x
+    assert pk._block_sum(t) == total
+
+
+@needs_numba
+def test_numba_thread_count_checked_and_small_box_falls_back():
+    radii = pk.binary_radii(16)
+    box = np.full(2, 4.0)                          # < 2 (cut + skin) = 4.4
+    assert pk._PairList(radii, box, 0.4, "auto").kernel == "numpy"
+    with pytest.raises(InputError, match="box side"):
+        pk._PairList(radii, box, 0.4, "numba")
+    with pytest.raises(InputError, match="threads"):
+        pk._PairList(radii, np.full(2, 50.0), 0.4, "numba", threads=999)
 
 
 def test_unknown_kernel():

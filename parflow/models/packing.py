@@ -17,26 +17,36 @@ Convergence: max_i |F_i| < ftol * <f_c>, where <f_c> is the mean contact-force m
 the choice and what it does to the contact network.
 
 Performance (no Python loop over particles or pairs): positions are stored as (d, N)
-arrays in Morton (Z-curve) order for cache locality; a Verlet pair list (cKDTree with
-periodic boxsize, skin ``skin`` = 0.4 by default: 0.2/0.3/0.5 cost 0.35/0.31/0.30 ms per
-iteration at N = 4096 including the rebuilds) is rebuilt only when the largest
-displacement since the last build may exceed skin/2 (a cheap running bound
-sum dt*|v|_2 is checked first, the exact displacement only when the bound trips).
-Force kernels: "numpy" turns the list into a sparse incidence matrix B (+1 at j, -1 at
-i), pair vectors are B @ x + shift and forces B^T @ (c r); "numba" (optional, Debian
-python3-numba) is a compiled pair loop doing the same operations in the same order, so
-the two give bit-identical forces and packings.  Measured (docs/benchmarks/packing.json,
-shared 2-core machine): N = 40 000 at phi = 0.88, 13 269 FIRE iterations: 37 s CPU with
-numpy, 18 s with numba; about a third of the numba time is neighbour-list rebuilds.
-FIRE needs ~6e3 (N = 4096), ~1.3e4-1.8e4 (4e4), ~2.4e4 (1e5) and ~9e4 (1e6) iterations;
-the count varies by +-30 % from seed to seed (the glassy relaxation before the
-convergent tail dominates it).  N = 10^6 (numba): 60 CPU-min, 0.9 GB peak RSS.
+arrays in Morton (Z-curve) order for cache locality; a Verlet pair list (skin ``skin`` =
+0.4 by default) is rebuilt only when the largest displacement since the last build may
+exceed skin/2 (a running bound sum dt max_i|v_i| is checked first, the exact displacement
+only when the bound trips).  The pairs i < j are kept sorted by (i, j).
+Kernels: "numpy" finds the pairs with cKDTree (periodic boxsize) and turns the list into a
+sparse incidence matrix B (+1 at j, -1 at i): pair vectors B @ x + shift, forces
+B^T @ (c r).  "numba" (optional, Debian python3-numba; packing_numba) builds the list with
+a periodic cell list and does each FIRE iteration in two compiled passes over the
+particles: forces fused with the reductions P = F.v, |F|, |v + dt F|, max|F_i|, then the
+velocity mixing, position update and max|v_i| in one loop.  With one thread (the default)
+the force pass is a pair loop over the half list; with ``threads`` > 1 it is a
+per-particle gather over the full list, parallel over particles (each pair computed from
+both ends).  In every case the force on a particle is summed over its neighbours in
+ascending index order with the same floating-point terms, and the reductions are summed
+in a fixed order (blocks of BLOCK particles, then the blocks in order), so the two
+kernels and any thread count give bit-identical forces and packings for a given seed.
+Measured with one thread (shared 2-core machine, load average ~4.5 from other jobs):
+N = 40 000, phi = 0.88, seed 1: 13 089 FIRE iterations in 11.7 s wall, 10.2 s CPU (the
+previous cKDTree + pair-loop kernel: 26.8 s wall, 17.8 s CPU); N = 10^5: 14 945
+iterations, 45 s CPU.
+FIRE needs ~6e3 (N = 4096), ~1.3e4-1.8e4 (4e4), ~1.5e4-2.4e4 (1e5) and ~9e4 (1e6)
+iterations; the count varies by +-30 % from seed to seed (the glassy relaxation before
+the convergent tail dominates it).
 
 Contacts are reported with integer image shifts n in reduced coordinates s = x/L in
 [0, 1)^d: r_ij = L * (s_j + n - s_i)   (DESIGN §2, h = diag(L)).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -48,6 +58,8 @@ from scipy.spatial import cKDTree
 from ..state import InputError
 
 KERNELS = ("numpy", "numba")
+#: numba threads of the compiled kernel unless told otherwise (see the module docstring).
+DEFAULT_THREADS = 1
 
 
 def have_numba() -> bool:
@@ -55,13 +67,6 @@ def have_numba() -> bool:
     import importlib.util
     return importlib.util.find_spec("numba") is not None
 
-
-def _import_numba():
-    import warnings
-    with warnings.catch_warnings():          # llvmlite's import-time DeprecationWarning
-        warnings.simplefilter("ignore", DeprecationWarning)
-        import numba
-    return numba
 
 SMALL_DIAMETER = 1.0
 RADIUS_RATIO = 1.4
@@ -192,13 +197,38 @@ def morton_order(s: np.ndarray, bits: int | None = None) -> np.ndarray:
 
 # --------------------------------------------------------------------------- pair list
 
+#: Particles per reduction block: F.v, |F|^2, |v|^2 are summed in index order within
+#: blocks of this size, then over the blocks in order (packing_numba.BLOCK is the same).
+BLOCK = 4096
+
+
+def _block_sum(t: np.ndarray) -> float:
+    """Sum of t (n,) in the fixed order of the compiled kernel: each block of BLOCK
+    entries in index order, then the block sums in order (cumsum is sequential)."""
+    n = t.shape[0]
+    nb = -(-n // BLOCK)
+    buf = np.zeros(nb * BLOCK)
+    buf[:n] = t
+    part = 0.0 + np.cumsum(buf.reshape(nb, BLOCK), axis=1)[:, -1]
+    return float(0.0 + np.cumsum(part)[-1])
+
+
 class _PairList:
-    """Verlet list with sparse-incidence force kernel.  X is (d, N), unwrapped between
-    rebuilds; shifts are fixed at build time so that r_ij = X_j - X_i + S_ij stays the
-    right periodic image while particles move less than skin/2."""
+    """Verlet pair list and force kernels.  X is (d, N), unwrapped between rebuilds; the
+    image of a pair is fixed at build time (r_ij = X_j - X_i + S_ij), which stays the
+    minimum image while particles move less than skin/2.
+
+    The pairs (i < j) are sorted by (i, j).  Both kernels list the same pairs and sum
+    the force on each particle over its neighbours in ascending index order with the
+    same floating-point terms, so their forces are bit-identical:
+    "numpy": cKDTree candidates, sparse incidence matrix B (+1 at j, -1 at i), pair
+    vectors B @ x + S and forces B^T @ (c r);
+    "numba": periodic cell list and a per-particle gather over a full CSR list
+    (packing_numba), parallel over particles with ``threads`` numba threads."""
 
     def __init__(self, radii: np.ndarray, box: np.ndarray, skin: float,
-                 kernel: str = "numpy"):
+                 kernel: str = "numpy", threads: int | None = None):
+        kernel_arg = kernel
         if kernel == "auto":
             kernel = "numba" if have_numba() else "numpy"
         if kernel not in KERNELS:
@@ -206,73 +236,149 @@ class _PairList:
         if kernel == "numba" and not have_numba():
             raise InputError("packing: kernel='numba' needs numba (Debian: apt-get install "
                              "python3-numba); use kernel='numpy'")
-        self.kernel = kernel
         self.radii = radii
         self.box = np.asarray(box, dtype=float)
         self.skin = float(skin)
         self.cut = 2.0 * float(radii.max()) + self.skin
+        # the compiled kernel re-takes the minimum image at every step: it needs
+        # |r_ij| < cut + skin < L/2 for every listed pair
+        small = self.box.min() <= 2.0 * (self.cut + self.skin)
+        if kernel == "numba" and small:
+            if kernel_arg == "numba":
+                raise InputError(f"packing: kernel='numba' needs a box side > 2 (cut + skin) "
+                                 f"= {2 * (self.cut + self.skin):.3g}; use kernel='numpy'")
+            kernel = "numpy"
+        self.kernel = kernel
         self.n_builds = 0
         self.build_time = 0.0
+        self.threads = None
+        if kernel == "numba":
+            self._nb = _import_kernels()
+            self.threads = int(threads) if threads else DEFAULT_THREADS
+            if not 1 <= self.threads <= self._nb.max_threads():
+                raise InputError(f"packing: threads must be in 1..{self._nb.max_threads()} "
+                                 f"(NUMBA_NUM_THREADS), got {threads!r}")
+            # one thread: pair loop over the half list; more: per-particle gather over
+            # the full list (each pair computed from both ends), parallel over particles
+            self.full = self.threads > 1
+            self._work = self._nb.Work(radii.shape[0])
+        self._half = None
 
+    @contextlib.contextmanager
+    def threads_set(self):
+        """Run the compiled kernels with ``self.threads`` numba threads inside the block."""
+        if self.kernel != "numba":
+            yield
+            return
+        old = self._nb.set_threads(self.threads)
+        try:
+            yield
+        finally:
+            self._nb.set_threads(old)
+
+    # ------------------------------------------------------------------ build
     def build(self, X: np.ndarray) -> np.ndarray:
         """Wrap X into the box, rebuild the list; return the wrapped X."""
         t0 = time.perf_counter()
-        d, n = X.shape
-        L = self.box[:, None]
-        X = _wrap01(X / L) * L
-        tree = cKDTree(X.T, boxsize=self.box, balanced_tree=False, compact_nodes=False)
-        pairs = tree.query_pairs(self.cut, output_type="ndarray")
-        i = np.ascontiguousarray(pairs[:, 0], dtype=np.int64)
-        j = np.ascontiguousarray(pairs[:, 1], dtype=np.int64)
-        dx = X[:, j]
-        dx -= X[:, i]
-        shift = np.round(dx / L)
-        shift *= L
-        dx -= shift                                # minimum image (box > 2 cut)
-        sig = self.radii[i] + self.radii[j]
-        sig += self.skin
-        keep = np.einsum("kp,kp->p", dx, dx) < sig * sig
-        i, j = i[keep], j[keep]
-        self.i, self.j = i, j
-        self.S = np.ascontiguousarray(-shift[:, keep])
-        self.isig = 1.0 / (self.radii[i] + self.radii[j])
-        p = i.shape[0]
         if self.kernel == "numba":
-            self.B = self.BT = None
-            self._ov = np.empty(p)
+            X, self.indptr, self.rows, self.nbr, self.hptr = self._nb.build(
+                X, self.radii, self.box, self.skin, self.cut, self.full)
+            self._work.chunk(self.indptr)
+            self._half = None                      # i, j, S, isig built when asked for
         else:
-            # B (p x n): row a has -1 at i_a and +1 at j_a (i < j: columns sorted)
-            cols = np.empty(2 * p, dtype=np.int64)
-            cols[0::2], cols[1::2] = i, j
-            vals = np.empty(2 * p)
-            vals[0::2], vals[1::2] = -1.0, 1.0
-            self.B = sp.csr_matrix((vals, cols, np.arange(0, 2 * p + 1, 2)), shape=(p, n))
-            self.BT = self.B.T.tocsr()
+            X = self._build_numpy(X)
         self.X0 = X.copy()
         self.n_builds += 1
         self.build_time += time.perf_counter() - t0
         return X
 
+    def _build_numpy(self, X):
+        d, n = X.shape
+        L = self.box[:, None]
+        X = _wrap01(X / L) * L
+        tree = cKDTree(X.T, boxsize=self.box, balanced_tree=False, compact_nodes=False)
+        # a hair above cut: the kept pairs are decided by the test below alone
+        pairs = tree.query_pairs(self.cut * (1.0 + 1e-9), output_type="ndarray")
+        i = np.ascontiguousarray(pairs[:, 0], dtype=np.int64)
+        j = np.ascontiguousarray(pairs[:, 1], dtype=np.int64)
+        keep = self._keep(X, i, j)
+        i, j = i[keep], j[keep]
+        order = np.argsort(i * n + j)              # (i, j) order; i < j from query_pairs
+        i, j = i[order], j[order]
+        self._set_half(X, i, j)
+        p = i.shape[0]
+        # B (p x n): row a has -1 at i_a and +1 at j_a (i < j: columns sorted)
+        cols = np.empty(2 * p, dtype=np.int64)
+        cols[0::2], cols[1::2] = i, j
+        vals = np.empty(2 * p)
+        vals[0::2], vals[1::2] = -1.0, 1.0
+        self.B = sp.csr_matrix((vals, cols, np.arange(0, 2 * p + 1, 2)), shape=(p, n))
+        self.BT = self.B.T.tocsr()
+        return X
+
+    def _keep(self, X, i, j):
+        """Build-time criterion |dx|^2 < (R_i + R_j + skin)^2 (minimum image)."""
+        L = self.box[:, None]
+        dx = X[:, j]
+        dx -= X[:, i]
+        dx -= np.round(dx / L) * L
+        sig = self.radii[i] + self.radii[j]
+        sig += self.skin
+        return np.einsum("kp,kp->p", dx, dx) < sig * sig
+
+    def _set_half(self, X, i, j):
+        L = self.box[:, None]
+        dx = X[:, j] - X[:, i]
+        self._half = (i, j, np.ascontiguousarray(-(np.round(dx / L) * L)),
+                      1.0 / (self.radii[i] + self.radii[j]))
+
+    def _get_half(self):
+        if self._half is None:                     # numba: the upper half of the CSR list
+            n = self.indptr.shape[0] - 1
+            rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(self.indptr))
+            m = self.nbr > rows
+            self._set_half(self.X0, rows[m], self.nbr[m].astype(np.int64))
+        return self._half
+
+    i = property(lambda self: self._get_half()[0])
+    j = property(lambda self: self._get_half()[1])
+    S = property(lambda self: self._get_half()[2])
+    isig = property(lambda self: self._get_half()[3])
+
+    # ------------------------------------------------------------------ geometry
     def max_displacement(self, X: np.ndarray) -> float:
+        if self.kernel == "numba":
+            return math.sqrt(self._nb.max_displacement2(X, self.X0, self._work.part1))
         dX = X - self.X0
-        return float(np.sqrt(np.einsum("kn,kn->n", dX, dX).max()))
+        return float(np.sqrt(_sq_norms(dX).max()))
 
     def pair_vectors(self, X: np.ndarray):
-        if self.B is None:
-            R = X[:, self.j] - X[:, self.i]
+        i, j, S, _ = self._get_half()
+        if self.kernel == "numba":
+            R = X[:, j] - X[:, i]
         else:
-            R = np.empty((X.shape[0], self.i.shape[0]))
+            R = np.empty((X.shape[0], i.shape[0]))
             for k in range(X.shape[0]):            # loop over dimensions only
                 R[k] = self.B @ X[k]
-        R += self.S
+        R += S
         r = np.sqrt(np.einsum("kp,kp->p", R, R))
         return R, r
 
+    def overlaps(self, X: np.ndarray):
+        """(overlap max(1 - r/sigma, 0), 1/sigma) of the listed pairs in (i, j) order."""
+        if self.kernel == "numba":
+            return self._nb.overlaps(X, self.radii, self.indptr, self.nbr, self.hptr, self.box)
+        _, r = self.pair_vectors(X)
+        ov = 1.0 - r * self.isig
+        np.maximum(ov, 0.0, out=ov)
+        return ov, self.isig
+
+    # ------------------------------------------------------------------ forces
     def forces(self, X: np.ndarray, F: np.ndarray) -> np.ndarray:
         """Forces (d, N) into F; returns the per-pair overlap 1 - r/sigma clipped at 0."""
-        if self.B is None:
-            _nb_forces(X.shape[0])(X, self.i, self.j, self.S, self.isig, F, self._ov)
-            return self._ov
+        if self.kernel == "numba":
+            self.step(X, np.zeros_like(X), F, 0.0)
+            return self.overlaps(X)[0]
         R, r = self.pair_vectors(X)
         ov = 1.0 - r * self.isig
         np.maximum(ov, 0.0, out=ov)
@@ -281,60 +387,56 @@ class _PairList:
             F[k] = self.BT @ (c * R[k])
         return ov
 
+    def step(self, X, V, F, dtp):
+        """Forces into F and the FIRE reductions over particles, in the fixed block order:
+        returns (F.V, |F|^2, |V + dtp F|^2, max_a |F_a|^2)."""
+        if self.kernel == "numba":
+            return self._nb.step(X, V, F, self.radii, self.indptr, self.rows, self.nbr, self.box,
+                                 float(dtp), self.full, self._work)
+        self.forces(X, F)
+        fv = F[0] * V[0]
+        U = V[0] + dtp * F[0]
+        w = U * U
+        for k in range(1, X.shape[0]):
+            fv += F[k] * V[k]
+            U = V[k] + dtp * F[k]
+            w += U * U
+        ff = _sq_norms(F)
+        return _block_sum(fv), _block_sum(ff), _block_sum(w), float(ff.max())
 
-_NB_KERNELS: dict = {}
+    def update(self, X, V, F, dt, backoff, c1, beta):
+        """FIRE update in place: [backoff: X -= dt/2 V; V = 0]; V += dt F;
+        [beta is not None: V *= c1; V += beta F]; X += dt V.  Returns max_a |V_a|^2."""
+        h = 0.5 * dt
+        if self.kernel == "numba":
+            mix = beta is not None
+            return self._nb.update(X, V, F, dt, h, bool(backoff), mix, float(c1),
+                                   float(beta) if mix else 0.0, self._work.part1)
+        if backoff:
+            X -= h * V
+            V[:] = 0.0
+        V += dt * F
+        if beta is not None:
+            V *= c1
+            V += beta * F
+        X += dt * V
+        return float(_sq_norms(V).max())
 
 
-def _nb_forces(d: int):
-    """Compiled pair loop (numba), built on first use: a branch-free loop specialised to
-    d = 2 (3x faster than the generic one, which serves d != 2).  Same arithmetic as the
-    numpy kernel in a different summation order: forces agree to round-off, but FIRE
-    trajectories (and so the packing for a given seed) differ between kernels."""
-    key = 2 if d == 2 else 0
-    if key not in _NB_KERNELS:
-        _numba = _import_numba()
-        if key == 2:
-            @_numba.njit(cache=True, nogil=True)
-            def kern(X, i, j, S, isig, F, ov):  # pragma: no cover - compiled
-                F[:, :] = 0.0
-                x, y, fx, fy, sx, sy = X[0], X[1], F[0], F[1], S[0], S[1]
-                for p in range(i.shape[0]):
-                    a = i[p]
-                    b = j[p]
-                    rx = x[b] - x[a] + sx[p]
-                    ry = y[b] - y[a] + sy[p]
-                    s = isig[p]
-                    r = np.sqrt(rx * rx + ry * ry)
-                    o = max(1.0 - r * s, 0.0)
-                    ov[p] = o
-                    c = o * s / r
-                    fx[b] += c * rx
-                    fx[a] -= c * rx
-                    fy[b] += c * ry
-                    fy[a] -= c * ry
-        else:
-            @_numba.njit(cache=True, nogil=True)
-            def kern(X, i, j, S, isig, F, ov):  # pragma: no cover - compiled
-                d = X.shape[0]
-                F[:, :] = 0.0
-                for p in range(i.shape[0]):
-                    a = i[p]
-                    b = j[p]
-                    r2 = 0.0
-                    for k in range(d):
-                        t = X[k, b] - X[k, a] + S[k, p]
-                        r2 += t * t
-                    s = isig[p]
-                    r = np.sqrt(r2)
-                    o = max(1.0 - r * s, 0.0)
-                    ov[p] = o
-                    c = o * s / r
-                    for k in range(d):
-                        t = c * (X[k, b] - X[k, a] + S[k, p])
-                        F[k, b] += t
-                        F[k, a] -= t
-        _NB_KERNELS[key] = kern
-    return _NB_KERNELS[key]
+def _sq_norms(A: np.ndarray) -> np.ndarray:
+    """|A_a|^2 per column of A (d, N), summed over k in order (as the compiled kernel)."""
+    t = A[0] * A[0]
+    for k in range(1, A.shape[0]):
+        t += A[k] * A[k]
+    return t
+
+
+def _import_kernels():
+    import warnings
+    with warnings.catch_warnings():          # llvmlite's import-time DeprecationWarning
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from . import packing_numba
+    return packing_numba
 
 
 # --------------------------------------------------------------------------- FIRE
@@ -345,54 +447,64 @@ def fire_minimize(X, pl: _PairList, ftol: float, *, params: FireParams | None = 
     """Minimise the harmonic energy from (d, N) positions X with FIRE.
 
     Stops when max_i |F_i| < max(ftol * <f_c>, force_floor(box)) (<f_c>: mean contact
-    force over overlapping pairs), or when no pair overlaps (F = 0 exactly: an unjammed state).  Returns
-    (X, info) with info = dict(iterations, max_force, force_scale, converged).
-    ``trace``, if given, receives (iteration, max|F|, <f_c>) every ``trace_every`` steps.
+    force over overlapping pairs), or when no pair overlaps (F = 0 exactly: an unjammed
+    state).  Returns (X, info) with info = dict(iterations, max_force, force_scale,
+    converged).  ``trace``, if given, receives (iteration, max|F|, <f_c>) every
+    ``trace_every`` steps.
+
+    One iteration is two passes over the particles: pl.step (forces, P = F.v, |F|,
+    |v + dt F| for the dt that P > 0 would give, max|F_a|) and pl.update (velocity mixing,
+    position update, max|v_a|).  The list is rebuilt when the running bound
+    sum dt max_a|v_a| on the displacement, then the exact displacement, exceeds skin/2.
     """
-    p = params or FireParams()
+    with pl.threads_set():
+        return _fire(X, pl, ftol, params or FireParams(), max_iter, trace, trace_every)
+
+
+def _fire(X, pl, ftol, p, max_iter, trace, trace_every):
     X = pl.build(X)
     F = np.empty_like(X)
     V = np.zeros_like(X)
-    ov = pl.forces(X, F)
     dt, alpha, n_pos = p.dt0, p.alpha0, 0
     bound = 0.0                                   # running bound on the displacement
     half_skin = 0.5 * pl.skin
-    fscale = _force_scale(ov, pl.isig)
     floor = force_floor(pl.box)
+    dt_plus = min(dt * p.f_inc, p.dt_max) if n_pos + 1 > p.n_min else dt
+    power, ff, w, ffmax = pl.step(X, V, F, dt_plus)
+    fscale = _force_scale(*pl.overlaps(X))
     it = 0
     converged = False
     while True:
-        fmax = float(np.sqrt(np.einsum("kn,kn->n", F, F).max()))
+        if not math.isfinite(ff):
+            raise RuntimeError(f"packing: non-finite forces at FIRE iteration {it} "
+                               "(coincident particles?)")
+        fmax = math.sqrt(ffmax)
         if trace is not None and it % trace_every == 0:
             trace.append((it, fmax, fscale))
         if it % 200 == 0 or fmax < max(ftol * fscale, floor):
-            fscale = _force_scale(ov, pl.isig)
+            fscale = _force_scale(*pl.overlaps(X))
             if fmax < max(ftol * fscale, floor) or fscale == 0.0:
                 converged = True
                 break
         if it >= max_iter:
             break
-        power = float(np.vdot(F, V))
+        fnorm = math.sqrt(ff)
         if power > 0.0:
             n_pos += 1
             if n_pos > p.n_min:
                 dt = min(dt * p.f_inc, p.dt_max)
                 alpha *= p.f_alpha
+            vnorm = math.sqrt(w)                  # |v + dt F|: dt == dt_plus here
+            backoff = False
         else:
             n_pos = 0
             dt *= p.f_dec
             alpha = p.alpha0
-            X -= 0.5 * dt * V                     # FIRE 2.0 back-off
-            V[:] = 0.0
-        V += dt * F
-        vnorm = math.sqrt(float(np.vdot(V, V)))
-        fnorm = math.sqrt(float(np.vdot(F, F)))
-        if fnorm > 0.0:
-            V *= 1.0 - alpha
-            V += (alpha * vnorm / fnorm) * F
-            vnorm = math.sqrt(float(np.vdot(V, V)))
-        X += dt * V
-        bound += dt * vnorm
+            vnorm = dt * fnorm                    # v = 0 + dt F after the back-off
+            backoff = True                        # FIRE 2.0: X -= dt/2 v, v = 0
+        beta = alpha * vnorm / fnorm if fnorm > 0.0 else None
+        vmax2 = pl.update(X, V, F, dt, backoff, 1.0 - alpha, beta)
+        bound += dt * math.sqrt(vmax2)
         it += 1
         if bound > half_skin:
             disp = pl.max_displacement(X)
@@ -400,9 +512,10 @@ def fire_minimize(X, pl: _PairList, ftol: float, *, params: FireParams | None = 
                 X = pl.build(X)
                 disp = 0.0
             bound = disp
-        ov = pl.forces(X, F)
-    fmax = float(np.sqrt(np.einsum("kn,kn->n", F, F).max()))
-    return X, dict(iterations=it, max_force=fmax, force_scale=fscale, converged=converged)
+        dt_plus = min(dt * p.f_inc, p.dt_max) if n_pos + 1 > p.n_min else dt
+        power, ff, w, ffmax = pl.step(X, V, F, dt_plus)
+    return X, dict(iterations=it, max_force=math.sqrt(ffmax), force_scale=fscale,
+                   converged=converged)
 
 
 def force_floor(box) -> float:
@@ -470,7 +583,8 @@ def make_packing(n: int, phi: float | None = None, *, d: int = 2, seed: int = 0,
                  pressure: float | None = None, ftol: float = DEFAULT_FTOL,
                  skin: float = 0.4, max_iter: int = 2_000_000,
                  pressure_rtol: float = 0.02, fire: FireParams | None = None,
-                 trace: list | None = None, kernel: str = "auto") -> Packing:
+                 trace: list | None = None, kernel: str = "auto",
+                 threads: int | None = None) -> Packing:
     """Jammed packing of ``n`` soft discs (d = 2) or spheres at packing fraction ``phi``.
 
     Protocol: uniform random positions (numpy Generator seeded with ``seed``; the same
@@ -482,10 +596,12 @@ def make_packing(n: int, phi: float | None = None, *, d: int = 2, seed: int = 0,
     pressure is within ``pressure_rtol`` of the target; ``phi`` is then only the first
     guess (default: phi_J + 2 p, from p ~ 0.5 (phi - phi_J) measured in 2D).
 
-    ``kernel``: "numpy" (always available), "numba" (compiled pair loop, needs
-    python3-numba) or "auto" (numba if installed).  Both kernels do the same floating-point
-    operations in the same order, so they give bit-identical forces and hence the same
-    packing for a given seed (tested); info["kernel"] records which one ran.
+    ``kernel``: "numpy" (always available), "numba" (compiled cell list and FIRE passes,
+    needs python3-numba) or "auto" (numba if installed).  ``threads``: numba threads
+    (default DEFAULT_THREADS = 1; at most NUMBA_NUM_THREADS).  Both kernels, with any
+    thread count, do the same floating-point operations in the same order, so they give
+    bit-identical forces and hence the same packing for a given seed (tested);
+    info["kernel"] and info["threads"] record what ran.
 
     Raises InputError if the minimised state has no contacts (phi below jamming).
     """
@@ -506,11 +622,11 @@ def make_packing(n: int, phi: float | None = None, *, d: int = 2, seed: int = 0,
     radii = radii[rng.permutation(n)]
     s = s[order]
     radii = radii[order]
-    pl = _PairList(radii, box, skin, kernel)
-    if box.min() <= 2.0 * pl.cut:
+    if box.min() <= 2.0 * (2.0 * radii.max() + 2.0 * skin):
         raise InputError(
-            f"packing: N = {n} gives a box of side {L:.3g}, smaller than twice the "
-            f"interaction range {pl.cut:.3g}: use a larger N")
+            f"packing: N = {n} gives a box of side {L:.3g}, not larger than twice the "
+            f"interaction range plus skin {2.0 * radii.max() + 2.0 * skin:.3g}: use a larger N")
+    pl = _PairList(radii, box, skin, kernel, threads)
     X = np.ascontiguousarray((s * box).T)
     X, info = fire_minimize(X, pl, ftol, params=fire, max_iter=max_iter, trace=trace)
     iterations = info["iterations"]
@@ -525,7 +641,8 @@ def make_packing(n: int, phi: float | None = None, *, d: int = 2, seed: int = 0,
         stages += more
     return _finish(X, pl, radii, box, phi, seed, ftol, iterations, info,
                    dict(stages=stages, n_builds=pl.n_builds, build_time=pl.build_time,
-                        wall_time=time.perf_counter() - t0, skin=skin, kernel=pl.kernel))
+                        wall_time=time.perf_counter() - t0, skin=skin, kernel=pl.kernel,
+                        threads=pl.threads))
 
 
 def _pressure(X, pl: _PairList, d: int) -> float:
@@ -561,7 +678,7 @@ def _to_pressure(X, pl, radii, box, phi, target, rtol, ftol, fire, max_iter, d):
         scale = (phi / new) ** (1.0 / d)
         box = box * scale
         X = X * scale
-        radii_pl = _PairList(radii, box, pl.skin, pl.kernel)
+        radii_pl = _PairList(radii, box, pl.skin, pl.kernel, pl.threads)
         radii_pl.n_builds, radii_pl.build_time = pl.n_builds, pl.build_time
         pl = radii_pl
         phi = new
