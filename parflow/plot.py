@@ -1814,6 +1814,26 @@ ACROSS_FIGURES = [
 ]
 
 
+def _suspension_across(fl: list) -> dict:
+    from .plot_suspension import across_suspension, pooled_fits
+    out = pooled_fits(fl)
+    out.update(across_suspension(fl))
+    out["model"] = "suspension"
+    return out
+
+
+def all_figures() -> list:
+    """FIGURES and the suspension figures (parflow.plot_suspension imports this module, so
+    its lists are joined here, when first needed)."""
+    from .plot_suspension import FIGURES as SUSPENSION
+    return FIGURES + SUSPENSION
+
+
+def all_across_figures() -> list:
+    from .plot_suspension import ACROSS_FIGURES as SUSPENSION
+    return ACROSS_FIGURES + SUSPENSION
+
+
 # ---------------------------------------------------------------------------------------
 # Driver
 # ---------------------------------------------------------------------------------------
@@ -1844,11 +1864,11 @@ def make_plots(path: str, outdir: str | None = None, fmt: str = "png",
         res.failed.append(("fits", f"{type(exc).__name__}: {exc}"))
     res.fits = fits
     if not run.ts or not len(next(iter(run.ts.values()))):
-        for name, _, _ in FIGURES:
+        for name, _, _ in all_figures():
             if not only or name in only:
                 res.skipped.append((name, "no rows in /timeseries"))
         return res
-    for name, models, func in FIGURES:
+    for name, models, func in all_figures():
         if only and name not in only:
             continue
         if models is not None and run.model not in models:
@@ -1871,6 +1891,9 @@ def _fits(run: Run) -> dict:
         return chain_fits(run)
     if run.model == "network":
         return network_fits(run)
+    if run.model == "suspension":
+        from .plot_suspension import suspension_fits
+        return suspension_fits(run)
     return {}
 
 
@@ -1894,7 +1917,7 @@ def make_across_plots(paths: list[str], outdir: str | None = None, fmt: str = "p
     outdir = outdir or default_across_outdir(paths)
     res = PlotResult([], [], [], {})
     cache: dict = {}
-    for name, model, func in ACROSS_FIGURES:
+    for name, model, func in all_across_figures():
         if only and name not in only:
             continue
         sel = [r for r in runs if r.model == model and r.ts and len(next(iter(r.ts.values())))]
@@ -1906,7 +1929,8 @@ def make_across_plots(paths: list[str], outdir: str | None = None, fmt: str = "p
             continue
         if model not in cache:
             fl = [_fits(r) for r in sel]
-            cache[model] = (fl, across_fits(fl) if model == "network" else {})
+            cache[model] = (fl, across_fits(fl) if model == "network" else
+                            _suspension_across(fl) if model == "suspension" else {})
             res.fits = dict(runs=fl, across=cache[model][1])
         fl, ac = cache[model]
         try:
@@ -1933,6 +1957,12 @@ def format_fits(fits: dict) -> list[str]:
     ``fits`` of :func:`make_across_plots`)."""
     if not fits:
         return []
+    if fits.get("model") == "suspension":
+        from .plot_suspension import format_suspension_fits
+        return format_suspension_fits(fits)
+    if fits.get("across", {}).get("model") == "suspension":
+        from .plot_suspension import format_across_suspension
+        return format_across_suspension(fits["across"])
     if fits.get("model") == "network":
         return format_network_fits(fits)
     if "across" in fits:
@@ -1996,7 +2026,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"),
                     help="image format (default png)")
     ap.add_argument("--only", metavar="NAME", action="append",
-                    choices=[n for n, _, _ in FIGURES] + [n for n, _, _ in ACROSS_FIGURES],
+                    choices=[n for n, _, _ in all_figures()] + [n for n, _, _ in all_across_figures()],
                     help="draw only this figure (repeatable)")
     args = ap.parse_args(argv)
     try:

@@ -16,13 +16,17 @@ Single run:
 
 Across runs (several phi):
 
-* ``fig6e_sigma_dz``     <sigma> against dz = 2d - z (slope -2.7) and against phi; p, mu.
+* ``fig6b_relaxation_phi``, ``fig6c_delta_gamma_phi``, ``fig6d_omega_min_phi``: the power laws
+                         of Figs. 6b-d with the analysis instants of all runs pooled (one run
+                         spans a narrow range of sigma; the laws appear across phi).
+* ``fig6e_sigma_dz``     <sigma> against dz = 2d - z2 (slope -2.7) and against phi; p, mu.
 * ``fig7b_lengths``      l_c (point response; C(r) 1/e length) against p (slope 0.18) and dz
                          (slope -1/2).
 """
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -257,9 +261,11 @@ def fig7a_correlation(run: Run, fits: dict):
     ax, ax2 = fig.subplots(1, 2)
     r = inst[0]["corr_r"]
     C = np.array([a["corr_C"] for a in inst if len(a["corr_C"]) == len(r)])
-    ax.plot(r, np.nanmean(C, axis=0), "-", color="k", label=f"mean of {len(C)} instants")
-    ax.fill_between(r, np.nanpercentile(C, 16, axis=0), np.nanpercentile(C, 84, axis=0),
-                    alpha=0.3, label="16–84 %")
+    with warnings.catch_warnings():            # empty bins (no pair that close) are NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ax.plot(r, np.nanmean(C, axis=0), "-", color="k", label=f"mean of {len(C)} instants")
+        ax.fill_between(r, np.nanpercentile(C, 16, axis=0), np.nanpercentile(C, 84, axis=0),
+                        alpha=0.3, label="16–84 %")
     ax.axhline(0, color="0.6", lw=0.8)
     ax.set_xlabel("r  [a0]")
     ax.set_ylabel("C(r) = ⟨V_i·V_j⟩/⟨V²⟩")
@@ -270,7 +276,9 @@ def fig7a_correlation(run: Run, fits: dict):
     if resp:
         rr = resp[0]["resp_r"]
         V = np.array([a["resp_V"] for a in resp if len(a["resp_V"]) == len(rr)])
-        ax2.semilogy(rr, np.nanmean(V, axis=0), "-", color="C1")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ax2.semilogy(rr, np.nanmean(V, axis=0), "-", color="C1")
         lcr = fits.get("resp_l_c", (math.nan, math.nan))
         ax2.set_title(f"point response of the frozen contacts: l_c = {lcr[0]:.3g} a0", fontsize=9)
     ax2.set_xlabel("r  [a0]")
@@ -287,10 +295,12 @@ def _across_title(runs, what):
 
 
 def across_suspension(fits: list[dict]) -> dict:
-    """sigma(dz) and l_c(p), l_c(dz) across runs (dz = 4 - z of the non-rattlers)."""
+    """sigma(dz) and l_c(p), l_c(dz) across runs (dz = 4 - z2)."""
     def col(key, k=0):
         return np.array([f.get(key, (math.nan, math.nan))[k] for f in fits], float)
-    dz = 4.0 - col("z")
+    # dz from z2 (rattlers: fewer than 2 force-bearing contacts, removed iteratively): the
+    # d + 1 rule of jammed packings removes every particle of a flowing N = 4096 state
+    dz = 4.0 - col("z2")
     out = dict(dz=dz, phi=np.array([f.get("phi", math.nan) for f in fits]), sigma=col("sigma"),
                sigma_err=col("sigma", 1), p=col("pressure"), mu=col("mu"),
                lc=col("resp_l_c"), lc_err=col("resp_l_c", 1), corr=col("corr_length"))
@@ -314,7 +324,7 @@ def fig6e_sigma_dz(runs, fits, across):
     x0 = float(np.exp(np.mean(np.log(ac["dz"][ok]))))
     y0 = float(np.exp(np.mean(np.log(ac["sigma"][ok]))))
     _reference(ax, x0, y0, PRED["sigma_dz"], 2, "slope −2.7 (paper)")
-    ax.set_xlabel("δz = 4 − z")
+    ax.set_xlabel("δz = 4 − z  (z: particles with ≥ 2 contacts)")
     ax.set_ylabel("⟨σ⟩")
     ax.set_title(f"fit exponent {f['exponent']:.2f} ± {f['err']:.2f}", fontsize=9)
     ax.legend(fontsize=8)
@@ -363,6 +373,72 @@ def fig7b_lengths(runs, fits, across):
     return fig
 
 
+def _pooled(fits: list[dict], key: str):
+    """Points (sigma, y, phi) of ``key`` pooled over the runs (one run covers a narrow range
+    of sigma; the power laws of Fig. 6 appear across phi)."""
+    xs, ys, ph = [], [], []
+    for f in fits:
+        x, y = f.get(key + "_points", (np.array([]), np.array([])))
+        xs.append(np.asarray(x, float))
+        ys.append(np.asarray(y, float))
+        ph.append(np.full(len(x), f.get("phi", math.nan)))
+    if not xs:
+        return np.array([]), np.array([]), np.array([])
+    return np.concatenate(xs), np.concatenate(ys), np.concatenate(ph)
+
+
+def pooled_fits(fits: list[dict]) -> dict:
+    out = {}
+    for key in ("relax_frozen", "delta_gamma", "omega_min"):
+        x, y, _ = _pooled(fits, key)
+        out[key] = fit_power_law_err(x, y)
+        ok = np.isfinite(x) & (x > 0)
+        out[key]["sigma_range"] = (float(x[ok].min()), float(x[ok].max())) if ok.any() else (math.nan, math.nan)
+    x, y, _ = _pooled(fits, "delta_gamma")
+    ok = np.isfinite(x) & np.isfinite(y)
+    out["delta_gamma_sigma"] = (float(np.median(x[ok] * y[ok])), float(np.std(x[ok] * y[ok]))) if ok.any() else (math.nan, math.nan)
+    return out
+
+
+def _pooled_fig(runs, fits, key, ylabel, pred, what):
+    x, y, ph = _pooled(fits, key)
+    ok = np.isfinite(x) & np.isfinite(y) & (x > 0) & (y > 0)
+    if ok.sum() < 3 or len({p for p in ph[ok]}) < 2:
+        raise Skip(f"needs {key} at analysis instants of 2 or more runs")
+    fig = _figure(6.8, 5.2)
+    ax = fig.subplots()
+    for p in sorted(set(ph[ok])):
+        m = ok & (ph == p)
+        ax.loglog(x[m], y[m], "o", ms=4, label=f"φ = {p:.3f}")
+    f = fit_power_law_err(x, y)
+    xs = np.geomspace(x[ok].min(), x[ok].max(), 20)
+    if np.isfinite(f["exponent"]):
+        ax.plot(xs, f["prefactor"] * xs ** f["exponent"], "-", color="k", lw=2, alpha=0.4,
+                label=f"fit: {f['exponent']:.3f} ± {f['err']:.3f}")
+    _reference(ax, float(np.exp(np.mean(np.log(x[ok])))), float(np.exp(np.mean(np.log(y[ok])))),
+               pred, 10, f"slope {pred:g} (paper)")
+    ax.set_xlabel("σ")
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=8)
+    fig.suptitle(_across_title(runs, what), fontsize=10)
+    return fig
+
+
+def fig6b_relaxation_phi(runs, fits, across):
+    return _pooled_fig(runs, fits, "relax_frozen", "−dσ/dγ (frozen contacts along the flow)",
+                       PRED["relaxation"], "Fig. 6b: dσ/dγ = −σ²/C")
+
+
+def fig6c_delta_gamma_phi(runs, fits, across):
+    return _pooled_fig(runs, fits, "delta_gamma", "δγ (frozen contacts sheared backwards)",
+                       PRED["delta_gamma"], "Fig. 6c: δγ ∝ 1/σ")
+
+
+def fig6d_omega_min_phi(runs, fits, across):
+    return _pooled_fig(runs, fits, "omega_min", "ω_min of the frozen contact network",
+                       PRED["omega_min"], "Fig. 6d: ω_min ∝ 1/√σ")
+
+
 FIGURES = [
     ("fig6a_sigma", {"suspension"}, fig6a_sigma),
     ("fig6b_relaxation", {"suspension"}, fig6b_relaxation),
@@ -372,6 +448,9 @@ FIGURES = [
     ("fig7a_correlation", {"suspension"}, fig7a_correlation),
 ]
 ACROSS_FIGURES = [
+    ("fig6b_relaxation_phi", "suspension", fig6b_relaxation_phi),
+    ("fig6c_delta_gamma_phi", "suspension", fig6c_delta_gamma_phi),
+    ("fig6d_omega_min_phi", "suspension", fig6d_omega_min_phi),
     ("fig6e_sigma_dz", "suspension", fig6e_sigma_dz),
     ("fig7b_lengths", "suspension", fig7b_lengths),
 ]
@@ -393,4 +472,25 @@ def format_suspension_fits(f: dict) -> list[str]:
              f"  delta_gamma ~ sigma^{f['delta_gamma']['exponent']:.3f} +- {f['delta_gamma']['err']:.3f} (pred. -1)",
              f"  omega_min ~ sigma^{f['omega_min']['exponent']:.3f} +- {f['omega_min']['err']:.3f} (pred. -0.5)",
              f"  l_c (point response) = {f['resp_l_c'][0]:.3g}, C(r) 1/e length = {f['corr_length'][0]:.3g}"]
+    return lines
+
+
+def format_across_suspension(ac: dict) -> list[str]:
+    """Summary lines of the pooled and across-phi fits."""
+    def fl(key, pred):
+        f = ac.get(key, {})
+        lo, hi = f.get("sigma_range", (math.nan, math.nan))
+        return (f"  {key}: exponent {f.get('exponent', math.nan):.3f} +- {f.get('err', math.nan):.3f} "
+                f"(pred. {pred:g}) over sigma {lo:.3g}-{hi:.3g}, {f.get('n', 0)} instants")
+    lines = ["suspension across runs (analysis instants pooled):",
+             fl("relax_frozen", PRED["relaxation"]), fl("delta_gamma", PRED["delta_gamma"]),
+             fl("omega_min", PRED["omega_min"]),
+             f"  delta_gamma * sigma = {ac['delta_gamma_sigma'][0]:.4g} (sd {ac['delta_gamma_sigma'][1]:.2g})"]
+    for key, pred in (("sigma_dz", PRED["sigma_dz"]), ("lc_p", PRED["lc_p"]), ("lc_dz", PRED["lc_dz"])):
+        f = ac.get(key, {})
+        lines.append(f"  {key}: exponent {f.get('exponent', math.nan):.3f} +- {f.get('err', math.nan):.3f} "
+                     f"(pred. {pred:g}), {f.get('n', 0)} runs")
+    lines.append("  phi, dz, <sigma>, <p>, mu, l_c: " + "; ".join(
+        f"{p:.3f}, {d:.3f}, {s:.4g}, {pp:.4g}, {m:.3f}, {lc:.3g}" for p, d, s, pp, m, lc in
+        zip(ac["phi"], ac["dz"], ac["sigma"], ac["p"], ac["mu"], ac["lc"])))
     return lines

@@ -1,6 +1,8 @@
 """The suspension through the scene driver (parflow.shear): legs in both directions, HDF5
 output, analyses on the frozen contact network (omega_min, point response, delta_gamma),
 restart, 1 rank vs 2 ranks, bad scenes."""
+import os
+
 import h5py
 import numpy as np
 import pytest
@@ -14,7 +16,8 @@ from parflow.state import InputError
 from parflow.system import BondedSystem
 
 
-def susp_scene(path, N=192, phi=0.80, fwd=0.08, rev=0.03, extra="", model=""):
+def susp_scene(path, N=192, phi=0.80, fwd=0.08, rev=0.03, extra="", model="",
+               obs="analysis_strain = 0.04"):
     return load_scene(f"""
 seed = 3
 [model]
@@ -30,7 +33,7 @@ strain = {fwd}
 direction = "reverse"
 strain = {rev}
 [observables]
-analysis_strain = 0.04
+{obs}
 [output]
 path = "{path}"
 checkpoint_every = 4
@@ -198,3 +201,33 @@ def test_cli_bad_scene_writes_nothing(tmp_path, comm, capsys):
     scene.write_text(susp_scene(str(out))["text"].replace("phi = 0.8\n", "phi = 0.9\n"))
     assert main([str(scene), "--no-plots"]) == 2
     assert not out.exists() and not (tmp_path / f"bad{comm.rank}.h5.tmp").exists()
+
+
+def test_suspension_figures(comm, mpi_tmp_path):
+    """Every suspension figure is drawn from small runs (the across-phi ones from two runs),
+    and the pooled fits see every analysis instant."""
+    from parflow import plot
+    from parflow import plot_suspension as ps
+    paths = []
+    for phi in (0.78, 0.80):
+        path = str(mpi_tmp_path / f"fig_{phi}.h5")
+        scene = susp_scene(path, phi=phi, fwd=0.12, rev=0.01,
+                           obs="analysis_strain = 0.03\nanalysis_from_strain = 0.03")
+        run_scene(scene)
+        paths.append(path)
+    comm.barrier()
+    out = str(mpi_tmp_path / f"plots{comm.rank}")
+    res = plot.make_plots(paths[1], outdir=out)
+    names = {n for n, _, _ in ps.FIGURES}
+    drawn = {os.path.splitext(os.path.basename(p))[0] for p in res.written}
+    assert names - {"fig6b_relaxation"} <= drawn, (res.skipped, res.failed)
+    assert not res.failed
+    acr = plot.make_across_plots(paths, outdir=out)
+    assert {n for n, _, _ in ps.ACROSS_FIGURES} <= {os.path.splitext(os.path.basename(p))[0]
+                                                    for p in acr.written}, (acr.skipped, acr.failed)
+    ac = acr.fits["across"]
+    n_inst = sum(1 for p in paths for a in plot.load_run(p).analysis
+                 if np.isfinite(a["delta_gamma"]) and a["sigma"] > 0)
+    assert ac["delta_gamma"]["n"] == n_inst >= 4
+    assert any("delta_gamma" in line for line in plot.format_fits(acr.fits))
+    comm.barrier()
