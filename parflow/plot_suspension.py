@@ -111,7 +111,10 @@ def suspension_fits(run: Run) -> dict:
     rc = np.array([a.get("relax_C", np.nan) for a in inst], float)
     rc = rc[np.isfinite(rc)]
     out["relax_frozen"]["C_median"] = float(np.median(rc)) if rc.size else math.nan
-    sig = np.array([a.get("sigma", np.nan) for a in inst], float)
+    # x axis: the stress of the frozen contact network at the instant, on which delta_gamma
+    # and omega_min are measured (the row's sigma belongs to the step, whose size it depends
+    # on; e.g. a leg's last step is cut short to end the leg)
+    sig = np.array([a.get("frozen_sigma", np.nan) for a in inst], float)
     for key, q in (("delta_gamma", "delta_gamma"), ("omega_min", "frozen_omega_min")):
         y = np.array([a.get(q, np.nan) for a in inst], float)
         out[key] = fit_power_law_err(sig, y)
@@ -417,7 +420,7 @@ def _pooled_fig(runs, fits, key, ylabel, pred, what):
                 label=f"fit: {f['exponent']:.3f} ± {f['err']:.3f}")
     _reference(ax, float(np.exp(np.mean(np.log(x[ok])))), float(np.exp(np.mean(np.log(y[ok])))),
                pred, 10, f"slope {pred:g} (paper)")
-    ax.set_xlabel("σ")
+    ax.set_xlabel("σ (of the frozen contacts at the instant)")
     ax.set_ylabel(ylabel)
     ax.legend(fontsize=8)
     fig.suptitle(_across_title(runs, what), fontsize=10)
