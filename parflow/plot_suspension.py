@@ -5,7 +5,8 @@ the scene (the transient), or the last half of the run if the scene has none.
 
 Single run:
 
-* ``fig6a_sigma``        sigma(gamma) over the statistics window, collisions marked; p and mu.
+* ``fig6a_sigma``        sigma(gamma) over the statistics window, steps with collisions marked
+                         (at N = 4096 nearly all of them); p and mu.
 * ``fig6b_relaxation``   -dsigma/dgamma against sigma over pairs of collision-free steps
                          (``suspension.relaxation``), slope-2 reference and fit.
 * ``fig6c_delta_gamma``  distance to jamming delta_gamma (frozen contacts sheared backwards)
@@ -161,7 +162,9 @@ def fig6a_sigma(run: Run, fits: dict):
     ax2.legend(fontsize=8)
     s = fits.get("sigma", (math.nan, math.nan))
     ax.set_title(f"⟨σ⟩ = {s[0]:.4g} ± {s[1]:.2g}", fontsize=9)
-    fig.suptitle(_title(run, "Fig. 6a: stress relaxes between collisions, jumps at them"), fontsize=10)
+    frac = float(np.mean(ts["n_coll"][m] > 0)) if "n_coll" in ts else math.nan
+    fig.suptitle(_title(run, f"Fig. 6a: σ(γ) in steady flow ({100 * frac:.0f} % of the steps "
+                             f"have collisions; dσ/dγ between them: Fig. 6b)"), fontsize=10)
     return fig
 
 
