@@ -300,6 +300,27 @@ def _across_title(runs, what):
     return f"{what} — suspension N={runs[0].param('N')}, φ = {phis[0]:.3f}–{phis[-1]:.3f} ({len(runs)} runs)"
 
 
+def fit_phi_c(phi, sigma, phi_max: float = 0.9) -> dict:
+    """sigma = A (phi_c - phi)^(-beta): phi_c by scanning, A and beta by least squares in
+    log-log at each phi_c; the phi_c of smallest residual.  NaN with fewer than 4 runs (three
+    parameters)."""
+    phi, sigma = np.asarray(phi, float), np.asarray(sigma, float)
+    ok = np.isfinite(phi) & np.isfinite(sigma) & (sigma > 0)
+    out = dict(phi_c=math.nan, beta=math.nan, rms=math.nan, n=int(ok.sum()))
+    if ok.sum() < 4:
+        return out
+    x, y = phi[ok], np.log(sigma[ok])
+    best = None
+    for pc in np.linspace(x.max() + 1e-4, phi_max, 4000):
+        X = np.log(pc - x)
+        a, b = np.polyfit(X, y, 1)
+        rms = float(np.sqrt(np.mean((y - (a * X + b)) ** 2)))
+        if best is None or rms < best[0]:
+            best = (rms, pc, -a)
+    out.update(rms=best[0], phi_c=float(best[1]), beta=float(best[2]))
+    return out
+
+
 def across_suspension(fits: list[dict]) -> dict:
     """sigma(dz) and l_c(p), l_c(dz) across runs (dz = 4 - z2)."""
     def col(key, k=0):
@@ -311,6 +332,7 @@ def across_suspension(fits: list[dict]) -> dict:
                sigma_err=col("sigma", 1), p=col("pressure"), mu=col("mu"),
                lc=col("resp_l_c"), lc_err=col("resp_l_c", 1), corr=col("corr_length"))
     out["sigma_dz"] = fit_power_law_err(dz, out["sigma"], out["sigma_err"])
+    out["phi_c"] = fit_phi_c(out["phi"], out["sigma"])
     out["lc_p"] = fit_power_law_err(out["p"], out["lc"])
     out["lc_dz"] = fit_power_law_err(dz, out["lc"])
     return out
@@ -334,7 +356,14 @@ def fig6e_sigma_dz(runs, fits, across):
     ax.set_ylabel("⟨σ⟩")
     ax.set_title(f"fit exponent {f['exponent']:.2f} ± {f['err']:.2f}", fontsize=9)
     ax.legend(fontsize=8)
-    ax2.semilogy(ac["phi"], ac["sigma"], "o-", label="⟨σ⟩")
+    ax2.semilogy(ac["phi"], ac["sigma"], "o", label="⟨σ⟩")
+    fc = ac["phi_c"]
+    if np.isfinite(fc["phi_c"]):
+        xs = np.linspace(np.nanmin(ac["phi"]), np.nanmax(ac["phi"]), 50)
+        ok = np.isfinite(ac["sigma"])
+        lnA = np.mean(np.log(ac["sigma"][ok]) + fc["beta"] * np.log(fc["phi_c"] - ac["phi"][ok]))
+        ax2.semilogy(xs, np.exp(lnA) * (fc["phi_c"] - xs) ** -fc["beta"], "-", color="C0", alpha=0.5,
+                     label=f"(φ_c − φ)^−{fc['beta']:.2f}, φ_c = {fc['phi_c']:.4f}")
     ax2.semilogy(ac["phi"], ac["p"], "s-", label="⟨p⟩")
     ax3 = ax2.twinx()
     ax3.plot(ac["phi"], ac["mu"], "^-", color="C2", label="μ = σ/p")
@@ -496,6 +525,10 @@ def format_across_suspension(ac: dict) -> list[str]:
         f = ac.get(key, {})
         lines.append(f"  {key}: exponent {f.get('exponent', math.nan):.3f} +- {f.get('err', math.nan):.3f} "
                      f"(pred. {pred:g}), {f.get('n', 0)} runs")
+    fc = ac.get("phi_c", {})
+    lines.append(f"  sigma ~ (phi_c - phi)^-beta: phi_c = {fc.get('phi_c', math.nan):.4f}, "
+                 f"beta = {fc.get('beta', math.nan):.2f} (rms {fc.get('rms', math.nan):.2g}, "
+                 f"{fc.get('n', 0)} runs; expected phi_c ~ 0.843)")
     lines.append("  phi, dz, <sigma>, <p>, mu, l_c: " + "; ".join(
         f"{p:.3f}, {d:.3f}, {s:.4g}, {pp:.4g}, {m:.3f}, {lc:.3g}" for p, d, s, pp, m, lc in
         zip(ac["phi"], ac["dz"], ac["sigma"], ac["p"], ac["mu"], ac["lc"])))

@@ -231,3 +231,12 @@ def test_suspension_figures(comm, mpi_tmp_path):
     assert ac["delta_gamma"]["n"] == n_inst >= 4
     assert any("delta_gamma" in line for line in plot.format_fits(acr.fits))
     comm.barrier()
+
+
+def test_fit_phi_c_recovers_a_divergence():
+    from parflow.plot_suspension import fit_phi_c
+    phi = np.array([0.80, 0.81, 0.82, 0.825, 0.83, 0.835])
+    sigma = 0.02 * (0.843 - phi) ** -2.1
+    f = fit_phi_c(phi, sigma)
+    assert f["phi_c"] == pytest.approx(0.843, abs=2e-4) and f["beta"] == pytest.approx(2.1, abs=0.02)
+    assert np.isnan(fit_phi_c(phi[:3], sigma[:3])["phi_c"])
