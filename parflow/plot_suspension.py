@@ -265,8 +265,10 @@ def fig7a_correlation(run: Run, fits: dict):
         raise Skip("no C(r) in the analysis groups")
     fig = _figure(11, 4.6)
     ax, ax2 = fig.subplots(1, 2)
-    r = inst[0]["corr_r"]
-    C = np.array([a["corr_C"] for a in inst if len(a["corr_C"]) == len(r)])
+    # the largest r (half the smallest cell height) changes as the cell shears: common bins
+    nb = min(len(a["corr_C"]) for a in inst)
+    r = inst[0]["corr_r"][:nb]
+    C = np.array([a["corr_C"][:nb] for a in inst])
     with warnings.catch_warnings():            # empty bins (no pair that close) are NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         ax.plot(r, np.nanmean(C, axis=0), "-", color="k", label=f"mean of {len(C)} instants")
@@ -280,8 +282,9 @@ def fig7a_correlation(run: Run, fits: dict):
     ax.legend(fontsize=8)
     resp = [a for a in inst if "resp_V" in a]
     if resp:
-        rr = resp[0]["resp_r"]
-        V = np.array([a["resp_V"] for a in resp if len(a["resp_V"]) == len(rr)])
+        nb = min(len(a["resp_V"]) for a in resp)
+        rr = resp[0]["resp_r"][:nb]
+        V = np.array([a["resp_V"][:nb] for a in resp])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             ax2.semilogy(rr, np.nanmean(V, axis=0), "-", color="C1")
