@@ -50,7 +50,7 @@ def one(n: int, phi: float, z: float, seed: int, kernel: str, threads: int | Non
         nb.save_network(save_network, net)
     cpu = lambda a, b: (b.ru_utime + b.ru_stime) - (a.ru_utime + a.ru_stime)  # noqa: E731
     return dict(
-        N=n, phi=phi, z_target=z, seed=seed, kernel=p.info["kernel"],
+        N=n, phi=phi, z_target=z, seed=seed, kernel=_label(p.info["kernel"], p.info.get("threads")),
         threads=p.info.get("threads"), iterations=p.iterations,
         packing_seconds=round(t1 - t0, 3), packing_cpu_seconds=round(cpu(r0, r1), 3),
         network_seconds=round(t2 - t1, 3), network_cpu_seconds=round(cpu(r1, r2), 3),
@@ -70,6 +70,11 @@ def one(n: int, phi: float, z: float, seed: int, kernel: str, threads: int | Non
         git_commit=_git_commit(),
         **({"network_file": save_network} if save_network else {}),
     )
+
+
+def _label(kernel, threads):
+    """Kernel name for the tables: "numba (2 threads)" when more than one thread ran."""
+    return f"{kernel} ({threads} threads)" if threads and threads > 1 else kernel
 
 
 def _git_commit():

@@ -33,11 +33,19 @@ both ends).  In every case the force on a particle is summed over its neighbours
 ascending index order with the same floating-point terms, and the reductions are summed
 in a fixed order (blocks of BLOCK particles, then the blocks in order), so the two
 kernels and any thread count give bit-identical forces and packings for a given seed.
-Measured with one thread (shared 2-core machine, load average ~4.5 from other jobs):
-N = 40 000, phi = 0.88, seed 1: 13 089 FIRE iterations in 11.7 s wall, 10.2 s CPU (the
-previous cKDTree + pair-loop kernel: 26.8 s wall, 17.8 s CPU); N = 10^5: 14 945
-iterations, 45 s CPU.
-FIRE needs ~6e3 (N = 4096), ~1.3e4-1.8e4 (4e4), ~1.5e4-2.4e4 (1e5) and ~9e4 (1e6)
+Measured (docs/benchmarks/packing.json; phi = 0.88, seed 1, one thread; shared 2-core
+machine with a load average of 3.5-6 from other jobs, so CPU seconds are the steadier
+number): N = 4096: 5 566 FIRE iterations, 1.2 s wall, 0.7 s CPU (numpy kernel: 1.9 s);
+N = 40 000: 13 089 iterations, 12.9 s wall, 11.4 s CPU, 1.0 ms per iteration (numpy
+kernel: 41 s; the previous cKDTree + pair-loop numba kernel: 26.8 s, 2.0 ms); N = 10^5:
+14 945 iterations, 32 s wall, 31 s CPU, 2.1 ms per iteration (previous: 5.1 ms);
+N = 10^6: 76 201 iterations, 2 529 s wall (42 min), 2 234 s CPU, 33 ms per iteration
+(previous: 49.5 ms) of which 202 s in 639 list builds (previous: 837 s in 697 cKDTree
+builds), peak RSS 0.80 GB; the network build then takes 1.7 s.  Two threads give the
+same packings but took 248 s instead of 12.9 s at N = 40 000 on the loaded machine (the
+threads wait for each other at every parallel pass when the cores are shared), hence
+DEFAULT_THREADS = 1.
+FIRE needs ~6e3 (N = 4096), ~1.3e4-1.8e4 (4e4), ~1.5e4-2.4e4 (1e5) and ~7.6e4-9e4 (1e6)
 iterations; the count varies by +-30 % from seed to seed (the glassy relaxation before
 the convergent tail dominates it).
 
@@ -223,8 +231,10 @@ class _PairList:
     same floating-point terms, so their forces are bit-identical:
     "numpy": cKDTree candidates, sparse incidence matrix B (+1 at j, -1 at i), pair
     vectors B @ x + S and forces B^T @ (c r);
-    "numba": periodic cell list and a per-particle gather over a full CSR list
-    (packing_numba), parallel over particles with ``threads`` numba threads."""
+    "numba" (packing_numba): periodic cell list; with one thread a pair loop over the half
+    list, with ``threads`` > 1 a per-particle gather over the full list, parallel over
+    particles.  The numba kernel also fuses the FIRE vector work into its passes (step,
+    update)."""
 
     def __init__(self, radii: np.ndarray, box: np.ndarray, skin: float,
                  kernel: str = "numpy", threads: int | None = None):
