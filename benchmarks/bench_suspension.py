@@ -6,7 +6,7 @@ analyses over the last 1.0), or reads run files that already exist (``--from-run
 writes docs/benchmarks/suspension.json: wall time of the step loop, strain per hour over the
 first 3.0 strain (no analyses there), per-step breakdown (neighbour search, LCP of which
 factorisations, position update), factorisations and active-set iterations per step,
-singular active sets, collisions, the time of the analyses, and the machine's load.
+singular active sets, collisions, and the machine's load when each run ended.
 
     python benchmarks/bench_suspension.py --from-runs out/fig6_suspension_phi0.8*.h5
     python benchmarks/bench_suspension.py --phi 0.820,0.830,0.840 [--ranks 1]
@@ -38,7 +38,10 @@ def summarise(path: str, transient: float = 3.0) -> dict:
     strain, wall = ts["strain"], ts["wall"]
     m = (ts["step"] > 0) & (strain <= transient + 1e-12)
     k = np.flatnonzero(m)
-    rec = dict(file=os.path.relpath(path, ROOT), status=str(a["status"]), phi=phi, loadavg_end=[float(x) for x in a.get("loadavg_end", [])],
+    status = str(a["status"])
+    if status == "failed" and "KeyboardInterrupt" in str(a.get("message", "")):
+        status = "stopped by hand"
+    rec = dict(file=os.path.relpath(path, ROOT), status=status, phi=round(phi, 5), loadavg_end=[float(x) for x in a.get("loadavg_end", [])],
                n_ranks=int(a["n_ranks"]), steps=int(a["steps"]),
                strain=float(strain[-1]), loop_seconds=round(float(a.get("wall_seconds", wall[-1])), 1),
                max_overlap=float(a.get("max_overlap", np.nan)),
@@ -63,13 +66,6 @@ def summarise(path: str, transient: float = 3.0) -> dict:
                    collisions_per_step=round(float(np.mean(ts["n_coll"][k])), 2),
                    active_per_step=round(float(np.mean(ts["n_active"][k])), 1),
                    singular_steps=int(np.count_nonzero(ts["singular"][k])))
-    if n_an and k.size:
-        after = (ts["step"] > 0) & (strain > transient)
-        j = np.flatnonzero(after)
-        if j.size > 1:
-            t_after = float(wall[j[-1]] - wall[j[0] - 1])
-            rate = rec["steps_per_second"]
-            rec["analysis_seconds_each"] = round(max(0.0, (t_after - j.size / rate)) / n_an, 1)
     return rec
 
 

@@ -279,7 +279,9 @@ class Run:
             status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, sigma = {obs['sigma']:.4g})"
             if writer:
                 checkpoint()
-                writer.set_attrs(status=status, message=message, steps=step)
+                writer.set_attrs(status=status, message=message, steps=step,
+                                 wall_seconds=time.monotonic() - t_start,
+                                 loadavg_end=np.array(os.getloadavg()), **eng.counters())
                 writer.flush()
             raise
         checkpoint()
