@@ -147,7 +147,7 @@ class ContactEngine:
             self.state.meta.update(state.meta)
         self.stats = None
         self.F = None
-        self._direction = 1
+        self._direction = 1 if ck is None else int(ck.get("direction", 1))
 
     # configuration -----------------------------------------------------------------
     @property
@@ -267,9 +267,6 @@ class ContactEngine:
         attrs["dgamma"] = 0.0
         return arrays, attrs
 
-    def restore_direction(self, ck: dict) -> None:
-        self._direction = int(ck.get("direction", 1))
-
     def on_jammed(self) -> None:
         pass
 
@@ -286,10 +283,7 @@ class ContactEngine:
 def make_engine(comm, state: State, scene: dict, model, ck: dict | None = None):
     kind = getattr(model, "ENGINE", "bonded")
     if kind == "contacts":
-        eng = ContactEngine(comm, state, scene, model, ck)
-        if ck is not None:
-            eng.restore_direction(ck)
-        return eng
+        return ContactEngine(comm, state, scene, model, ck)
     if state.bonds is None:
         raise InputError(f"model {scene['model']['name']!r} built a state without bonds")
     return BondedEngine(comm, state, scene, model, ck)

@@ -168,14 +168,19 @@ def _attr(v):
     return v.replace("\x00", "") if isinstance(v, str) else v
 
 
-def read_run(path: str) -> h5py.File:
-    """Open a parflow run file read-only, with a clear error if it is not one."""
+def open_hdf5(path: str) -> h5py.File:
+    """Open an HDF5 file read-only, with a clear error if it is missing or not HDF5."""
     if not os.path.isfile(path):
         raise InputError(f"{path!r} does not exist")
     try:
-        f = h5py.File(path, "r")
+        return h5py.File(path, "r")
     except OSError:
         raise InputError(f"{path!r} is not an HDF5 file") from None
+
+
+def read_run(path: str) -> h5py.File:
+    """Open a parflow run file read-only, with a clear error if it is not one."""
+    f = open_hdf5(path)
     if f.attrs.get("format") != FORMAT:
         f.close()
         raise InputError(f"{path!r} is not a parflow run file (format attribute missing)")

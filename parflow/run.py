@@ -132,9 +132,6 @@ class Run:
         # built on rank 0 and broadcast; an InputError there is raised on every rank
         return collective(self.comm, self.model.build, self.scene["model"], self.scene["seed"])
 
-    def _observe(self, eng) -> dict:
-        return eng.observe()
-
     # ------------------------------------------------------------------------------------
     def execute(self) -> str:
         comm, scene = self.comm, self.scene
@@ -211,7 +208,7 @@ class Run:
                              level=-10**9 if level is None else level)
                 writer.set_checkpoint(arrays, attrs)
 
-        obs = self._observe(eng)
+        obs = eng.observe()
         leg_start_obs = dict(obs)
         if ck is None:
             wom = eng.omega_min() if self.obs_cfg["omega_min_every"] else float("nan")
@@ -239,7 +236,7 @@ class Run:
                 leg_steps += 1
                 strain += abs(dgamma)
                 leg_strain += abs(dgamma)
-                obs = self._observe(eng)
+                obs = eng.observe()
                 every = self.obs_cfg["omega_min_every"]
                 wom = eng.omega_min() if every and step % every == 0 else float("nan")
                 wom_last = wom if np.isfinite(wom) else wom_last

@@ -52,15 +52,10 @@ def parser() -> argparse.ArgumentParser:
 
 def load_state(path: str, step: int | None = None) -> tuple[State, dict]:
     """(State with bonds at the chosen instant, provenance dict) from a run or network file."""
-    import h5py
-    if not os.path.isfile(path):
-        raise InputError(f"{path!r} does not exist")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise InputError(f"{path!r} is not an HDF5 file") from None
+    from .io import FORMAT, open_hdf5
+    f = open_hdf5(path)
     with f:
-        if f.attrs.get("format") == "parflow-run-1":
+        if f.attrs.get("format") == FORMAT:
             init = f["initial"]
             if "bonds" not in init:
                 raise InputError(f"{path!r} is a run of model {f.attrs.get('model', '?')!s} without "

@@ -1,4 +1,4 @@
-"""Small random bonded systems and dense reference operators for the tests."""
+"""Small random bonded systems, dense reference operators and a scene runner for the tests."""
 import numpy as np
 
 from parflow.cell import velocity_gradient
@@ -43,3 +43,13 @@ def local_rows_dense(mat, ncols):
     for k in range(hi - lo):
         out[k, indices[indptr[k]:indptr[k + 1]]] = data[indptr[k]:indptr[k + 1]]
     return lo, hi, out
+
+
+def run_scene(scene, comm=None, **kw):
+    """Run a loaded scene through the driver, quietly; returns the run's status."""
+    from petsc4py import PETSc
+
+    from parflow.run import Run, setup_logging
+    comm = comm or PETSc.COMM_WORLD
+    setup_logging(comm, quiet=True)
+    return Run(scene, comm, scene["output"]["path"], quiet=True, **kw).execute()

@@ -7,9 +7,9 @@ from petsc4py import PETSc
 
 from parflow.integrate import Heun, Jammed, StepControl
 from parflow.models import chain
-from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
 from parflow.system import BondedSystem
+from systems import run_scene
 
 
 def chain_scene(path, N=200, eps=0.1, mu=0, legs=None, extra=""):
@@ -28,12 +28,6 @@ path = "{path}"
 checkpoint_every = 40
 {extra}
 """)
-
-
-def run_scene(scene, comm=None, **kw):
-    comm = comm or PETSc.COMM_WORLD
-    setup_logging(comm, quiet=True)
-    return Run(scene, comm, scene["output"]["path"], quiet=True, **kw).execute()
 
 
 @pytest.mark.parametrize("mu", [0, 2])

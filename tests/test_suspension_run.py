@@ -10,10 +10,10 @@ from petsc4py import PETSc
 
 from parflow.models import chain
 from parflow.models import suspension as msu
-from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
 from parflow.state import InputError
 from parflow.system import BondedSystem
+from systems import run_scene
 
 
 def susp_scene(path, N=192, phi=0.80, fwd=0.08, rev=0.03, extra="", model="",
@@ -39,12 +39,6 @@ path = "{path}"
 checkpoint_every = 4
 {extra}
 """)
-
-
-def run_scene(scene, comm=None, **kw):
-    comm = comm or PETSc.COMM_WORLD
-    setup_logging(comm, quiet=True)
-    return Run(scene, comm, scene["output"]["path"], quiet=True, **kw).execute()
 
 
 def test_suspension_scene_forward_and_reverse(comm, mpi_tmp_path):

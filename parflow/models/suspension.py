@@ -147,10 +147,6 @@ def restore_dict(state: State, ck: dict) -> dict:
                 infeasible_reductions=ck["infeasible_reductions"], controls=controls(state.meta))
 
 
-def observables(state: State, F) -> dict:        # the engine computes them (z, p, mu, ...)
-    return {}
-
-
 # --------------------------------------------------------------------------- frozen network
 
 def force_bearing(f: np.ndarray, rel: float = 1e-12) -> np.ndarray:
