@@ -9,7 +9,8 @@ Step (Heun, second order, first-same-as-last):
     k1 = F(s1, gamma + dg)
     err = |V1 - V0| / max(|V0|, |V1|)                (relative change of V_na over the step)
     accept if err <= tol:  s' = s + dg (k0 + k1) / 2, then project onto the rod constraints
-    with the factor of N(s1):  dr = -S^T N^-1 (l - l0), iterated (quasi-Newton)
+    with the factor of N(s1):  dr = -S^T N^-1 (l - l0), iterated (quasi-Newton; Newton
+    steps, N refactorised, where that does not contract: BondedSystem.project)
     next dg = dg * clip(0.9 tol / err, 0.2, 2), bounded by max_dgamma and by the largest
     non-affine displacement per step max_i |V_na,i| dg <= max_displacement.
 A step whose factorisation or projection fails is rejected and retried 4x smaller; when dg

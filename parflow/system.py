@@ -113,29 +113,47 @@ class BondedSystem:
         """S^T x for a replicated x (numpy, with the loaded unit vectors)."""
         return self.ops.ST_numpy(x)
 
-    def project(self, s: np.ndarray, gamma: float, tol: float = 1e-13, max_iter: int = 30):
-        """Restore rod lengths: quasi-Newton with the loaded factor,
-        dr = -S^T N^-1 (l - l0), iterated until max|l - l0| <= tol (absolute, in a0).
+    def project(self, s: np.ndarray, gamma: float, tol: float = 1e-13, max_iter: int = 30,
+                max_refactor: int = 6):
+        """Restore rod lengths: dr = -S^T N^-1 (l - l0), iterated until max|l - l0| <= tol
+        (absolute, in a0).  Quasi-Newton with the loaded factor (the predictor's) while it
+        contracts the error at least 4x per iteration; otherwise a Newton step: N is
+        refactorised at the current point -- or, if the error grew, at the previous (better)
+        point, which is restored.  Near jamming the predictor's N differs from N at the
+        corrected point along its softest modes and the quasi-Newton iteration diverges for
+        all but small steps; Newton converges there (at most ``max_refactor`` refactorisations).
         Returns (s, iterations, final error).  Raises SingularOperator if it does not
-        converge (the constraints cannot be met: the system has jammed)."""
+        converge (the constraints cannot be met: the system has jammed, or the step is too
+        large)."""
         st, bd = self.state, self.state.bonds
         h = cell_at(st.h0, st.E, gamma)
         hinv = np.linalg.inv(h)
         # lengths computed from r = h (s_j + n - s_i) carry a round-off ~ eps |h| |s|:
         # the tolerance cannot be tighter than that (a box of 1e4 a0 gives ~1e-12 a0)
         tol = max(tol, 8 * np.finfo(float).eps * np.abs(h).max() * max(1.0, np.abs(s).max()))
+        prev = None                      # (s, g, n, err) of the previous iterate
+        refactors = 0
         for it in range(max_iter + 1):
-            r, ell, _, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
+            r, ell, n, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
             g = ell - bd.l0
             err = float(np.max(np.abs(g)))
             if err <= tol:
                 return s, it, err
             if it == max_iter or not np.isfinite(err):
                 break
+            if prev is not None and err > 0.25 * prev[3]:
+                if refactors == max_refactor:
+                    break
+                if not err < prev[3]:             # grew: back to the better point
+                    s, g, n, err = prev
+                self.load(n)                      # Newton: N at this point
+                refactors += 1
+            prev = (s, g, n, err)
             x = self.solve_N(-g, what="projection")
             s = s + self.ST(x) @ hinv.T
         raise SingularOperator(f"projection on the rod constraints did not converge "
-                               f"(max |l - l0| = {err:.3e} after {max_iter} iterations)")
+                               f"(max |l - l0| = {err:.3e} after {it} iterations, "
+                               f"{refactors} refactorisations)")
 
     def destroy(self):
         self.tau_solver.destroy()

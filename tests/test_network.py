@@ -17,6 +17,7 @@ from parflow.models import network_build as nb
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
 from parflow.state import Bonds, InputError, State
+from parflow.solvers import SingularOperator
 from parflow.system import BondedSystem
 from systems import dense_operators
 
@@ -125,6 +126,31 @@ def test_shear_keeps_rods_rigid_and_sigma_identity(state):
     assert worst < 1e-10
     assert max(sig) > 1e2 * sig[0]                # it did approach jamming
     assert sig[-1] < 0.5 * max(sig)                # and relaxed after the reversal
+    sysm.destroy()
+
+
+def test_projection_falls_back_to_newton(state):
+    """The quasi-Newton projection with a factor of N taken far from the constraint manifold
+    does not contract; the Newton fallback (N refactorised where it stands) restores the rod
+    lengths anyway, and with no refactorisation allowed the failure is reported."""
+    sysm = BondedSystem(PETSc.COMM_WORLD, state)
+    rng = np.random.default_rng(5)
+    far = state.s + 0.05 * rng.standard_normal(state.s.shape)
+    near = state.s + 0.002 * rng.standard_normal(state.s.shape)
+    bd = state.bonds
+
+    def lengths(s):
+        return np.linalg.norm(pair_geometry(s, state.h, state.E, bd.i, bd.j, bd.shift)[0], axis=1)
+
+    sysm.evaluate(far, 0.0)
+    with pytest.raises(SingularOperator, match="did not converge"):
+        sysm.project(near, 0.0, tol=1e-12, max_refactor=0)
+    sysm.evaluate(far, 0.0)
+    before = sysm.n_factor
+    s, it, err = sysm.project(near, 0.0, tol=1e-12)
+    assert sysm.n_factor > before                  # it did refactorise
+    assert err <= 1e-12 and np.max(np.abs(lengths(s) - bd.l0)) <= 1e-12
+    assert np.max(np.abs(s - near)) < 0.01         # a nearby point, not a distant solution
     sysm.destroy()
 
 
