@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
+from parflow import contacts as co
 from parflow import suspension as su
 from parflow.state import InputError
 
@@ -231,3 +232,32 @@ def test_relaxation_fit_exact():
     r = su.relaxation(g, dg, sig, nc)
     assert r["pairs"] == 37 and r["decreasing"] == 1.0
     assert abs(r["slope"] - 2.0) < 1e-9 and abs(r["C"] - C) < 1e-9
+
+
+def test_bordered_solves_match_fresh_factorisations(dense):
+    """A walk of active sets, a few contacts in and out per move: the solutions from one
+    factorisation with bordered (Schur complement) updates equal dense solves; a border
+    larger than max_border, or one that makes N_AA singular, gets a fresh factorisation."""
+    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    S = su.rigidity(c, dense.n)
+    N = (S @ S.T).tocsr()
+    Nd = N.toarray()
+    q = c.b + c.gap / 1e-3
+    rng = np.random.default_rng(4)
+    A = rng.random(len(c)) < 0.3
+    info = su.LCPInfo()
+    act = co.ActiveSolver(N, q, info, max_border=12)
+    moves = 0
+    for size in [3] * 10 + [20] + [2] * 5:
+        flip = rng.choice(len(c), size, replace=False)
+        A[flip] = ~A[flip]
+        x = act.solve(A)
+        idx = np.flatnonzero(A)
+        ref = np.linalg.solve(Nd[np.ix_(idx, idx)], -q[idx])
+        assert np.all(x[~A] == 0)
+        assert np.allclose(x[idx], ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+        moves += 1
+    act.release()
+    assert info.bordered >= 8                  # most moves did not factorise
+    assert 2 <= info.factorizations < moves    # the first, and after the 20-contact move
+    assert info.singular == 0
