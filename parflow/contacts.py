@@ -15,6 +15,7 @@ Replicated: every rank computes the same thing (no communication).
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -315,14 +316,17 @@ class ActiveSolver:
             bs["m"] = m2
         return np.array([slot[k] for k in keys.tolist()], np.int64)
 
-    def _apply(self, rhs: np.ndarray, v0: np.ndarray, Ctv0: np.ndarray, R, B, sl, lu) -> np.ndarray:
+    def _apply(self, rhs: np.ndarray, v0: np.ndarray, Ctv0: np.ndarray, R, B, sl,
+               lu) -> np.ndarray | None:
         """The bordered solution (nc-space) for right-hand side ``rhs`` (nc-space, rows of A
         used), v0 = N00^-1 rhs_0 (base space) and Ctv0 = C_sel^T v0:
         (D - C^T Z) y = [0 ; rhs_B] - C^T v0;  x0 = v0 - Z y,  x_B = y_B,  x_R = 0."""
         bs = self.base
         t = -Ctv0
         t[R.size:] += rhs[B]
-        y = scipy.linalg.lu_solve(lu, t)
+        y = scipy.linalg.lu_solve(lu, t, check_finite=False)
+        if not np.all(np.isfinite(y)):
+            return None                       # Sig singular: a self-stress among the border
         ym = np.zeros(bs["m"])
         ym[sl] = y
         x = np.zeros(self.nc)
@@ -349,12 +353,15 @@ class ActiveSolver:
         Sig = -bs["G"][np.ix_(sl, sl)]
         if B.size:
             Sig[nR:, nR:] += N[B][:, B].toarray()
-        try:
-            lu = scipy.linalg.lu_factor(Sig, check_finite=True)
-        except (ValueError, np.linalg.LinAlgError):
+        if not np.all(np.isfinite(Sig)):
             return None
+        with warnings.catch_warnings():       # a singular Sig is detected below
+            warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)
+            lu = scipy.linalg.lu_factor(Sig, check_finite=False)
         rhs = -q
         x = self._apply(rhs, bs["y0"], bs["g0"][sl].copy(), R, B, sl, lu)
+        if x is None:
+            return None
         # residuals through the whole N (x = 0 off A); ||N_AA||_inf bounded by N's row sums
         A_idx = np.flatnonzero(A)
         norm = float(self._rowsum[A_idx].max())
@@ -366,7 +373,10 @@ class ActiveSolver:
             v0 = bs["fac"].solve(np.ascontiguousarray(r[bs["idx"]]))
             if v0 is None:
                 return None
-            x = x + self._apply(r, v0, bs["C"][:, sl].T @ v0, R, B, sl, lu)
+            dx = self._apply(r, v0, bs["C"][:, sl].T @ v0, R, B, sl, lu)
+            if dx is None:
+                return None
+            x = x + dx
             res = (N @ x)[A_idx] - rhs[A_idx]
             if not _solution_ok(res, x[A_idx], rhs[A_idx], norm, 1e-8):
                 return None

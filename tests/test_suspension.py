@@ -261,3 +261,23 @@ def test_bordered_solves_match_fresh_factorisations(dense):
     assert info.bordered >= 8                  # most moves did not factorise
     assert 2 <= info.factorizations < moves    # the first, and after the 20-contact move
     assert info.singular == 0
+
+
+def test_bordered_singular_border_falls_back(dense):
+    """Adding a copy of an active contact makes N_AA singular: the bordered update notices
+    (singular Schur complement), the fresh factorisation is shifted and counted."""
+    import scipy.sparse as sp
+    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    S1 = su.rigidity(c, dense.n)
+    S = sp.vstack([S1, S1[:1]]).tocsr()
+    N = (S @ S.T).tocsr()
+    q = np.concatenate([c.b, c.b[:1]]) + 1.0
+    A = np.zeros(S.shape[0], bool)
+    A[:40] = True
+    info = su.LCPInfo()
+    act = co.ActiveSolver(N, q, info)
+    act.solve(A)
+    A[-1] = True
+    x = act.solve(A)
+    act.release()
+    assert info.singular == 1 and info.bordered == 0 and np.all(np.isfinite(x))
