@@ -1,0 +1,130 @@
+"""The contact LCP: a fresh factorisation of N_AA for every active set, against one
+factorisation kept and bordered (Schur complement) updates (contacts.ActiveSolver).
+
+Takes a suspension run file with a checkpoint (e.g. out/fig6_suspension_phi0.840.h5), steps
+the suspension on from it for ``--steps`` steps recording every LCP the steps solve, then
+solves each recorded LCP again with each strategy, one process, and compares: wall time,
+solves, factorisations, and the largest difference of V = S^T f from the recorded solution
+(f itself is not unique when N_C is singular; V is).  Writes docs/benchmarks/lcp.json.
+
+    python benchmarks/bench_lcp.py out/fig6_suspension_phi0.840.h5 --steps 40
+    python benchmarks/bench_lcp.py          # makes out/bench_lcp_phi0.840.h5 first (300 steps)
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+import results  # noqa: E402  (benchmarks/results.py)
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+DEFAULT_RUN = os.path.join(ROOT, "out", "bench_lcp_phi0.840.h5")
+
+
+def record(path: str, steps: int) -> tuple[list, dict]:
+    """The LCPs (S, q, warm, f) solved by ``steps`` steps from the checkpoint of ``path``."""
+    from petsc4py import PETSc
+
+    import parflow.suspension as su
+    from parflow.engines import make_engine
+    from parflow.io import read_run
+    from parflow.run import Run
+    from parflow.scene import load_scene
+
+    with read_run(path) as f:
+        scene = load_scene(f.attrs["scene"])
+    run = Run(scene, PETSc.COMM_SELF, path, restart=True, quiet=True)
+    state, ck = run._load_checkpoint()
+    eng = make_engine(PETSc.COMM_SELF, state, scene, run.model, ck)
+    sim = eng.sim
+    out = []
+    solve = su.solve_lcp
+
+    def recording(S, q, warm=None, **kw):
+        f, info = solve(S, q, warm, **kw)
+        out.append((S, q, warm, f))
+        return f, info
+
+    su.solve_lcp = recording
+    try:
+        g0 = sim.state.gamma
+        for _ in range(steps):
+            sim.step(1)
+    finally:
+        su.solve_lcp = solve
+    meta = dict(file=os.path.relpath(path, ROOT), phi=float(state.meta.get("phi", np.nan)),
+                N=int(state.n), gamma_from=float(g0), gamma_to=float(sim.state.gamma),
+                steps=steps, sigma_end=float(sim.sigma))
+    return out, meta
+
+
+def measure(instances: list, max_border: int) -> dict:
+    import parflow.contacts as co
+
+    init = co.ActiveSolver.__init__
+
+    def patched(self, *a, **kw):
+        init(self, *a, **kw)
+        self.max_border = max_border
+
+    co.ActiveSolver.__init__ = patched
+    try:
+        wall, solves, facts, bordered, fails, dv = 0.0, 0, 0, 0, 0, 0.0
+        for S, q, warm, f_ref in instances:
+            t0 = time.perf_counter()
+            try:
+                f, info = co.solve_lcp(S, q, warm)
+            except co.LCPFailure:
+                fails += 1
+                wall += time.perf_counter() - t0
+                continue
+            wall += time.perf_counter() - t0
+            solves += info.iterations
+            facts += info.factorizations
+            bordered += info.bordered
+            V, Vr = S.T @ f, S.T @ f_ref
+            dv = max(dv, float(np.abs(V - Vr).max() / max(np.abs(Vr).max(), 1e-300)))
+    finally:
+        co.ActiveSolver.__init__ = init
+    n = len(instances)
+    return dict(max_border=max_border, lcps=n, wall_s=round(wall, 3),
+                ms_per_lcp=round(1e3 * wall / n, 1), solves_per_lcp=round(solves / n, 1),
+                factorisations_per_lcp=round(facts / n, 2),
+                bordered_per_lcp=round(bordered / n, 1), failures=fails, max_rel_dV=dv)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run", nargs="?", default=DEFAULT_RUN,
+                    help="a suspension run file with a checkpoint (default: %(default)s, made "
+                         "from runs/fig6_suspension_phi0.840.toml by 300 steps if missing)")
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--borders", default="0,20,80,200",
+                    help="max_border values to compare (0: a fresh factorisation every solve)")
+    a = ap.parse_args(argv)
+    if not os.path.exists(a.run):
+        if a.run != DEFAULT_RUN:
+            print(f"bench_lcp: no such run file {a.run!r}", file=sys.stderr)
+            return 2
+        subprocess.run([sys.executable, "-m", "parflow.shear",
+                        os.path.join(ROOT, "runs", "fig6_suspension_phi0.840.toml"),
+                        "--output", a.run, "--max-steps", "300", "--no-plots", "--quiet"],
+                       cwd=ROOT, check=True)
+    instances, meta = record(a.run, a.steps)
+    rows = [measure(instances, int(b)) for b in a.borders.split(",")]
+    for r in rows:
+        print(r)
+    data = dict(meta, rows=rows, measured=time.strftime("%Y-%m-%d %H:%M:%S"),
+                loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp", data))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
