@@ -338,6 +338,11 @@ def across_suspension(fits: list[dict]) -> dict:
     # the same with every particle counted (z_all): how much the rattler rule matters
     out["dz_all"] = 4.0 - col("z_all")
     out["sigma_dz_all"] = fit_power_law_err(out["dz_all"], out["sigma"], out["sigma_err"])
+    # DESIGN's rule (< d + 1 contacts, iteratively) where it leaves a backbone (z >= 3: at
+    # phi <= 0.825 it removes most particles of a flowing state, and z there means little)
+    z_dp1 = col("z")
+    out["dz_dp1"] = np.where(z_dp1 >= 3.0, 4.0 - z_dp1, np.nan)
+    out["sigma_dz_dp1"] = fit_power_law_err(out["dz_dp1"], out["sigma"], out["sigma_err"])
     out["phi_c"] = fit_phi_c(out["phi"], out["sigma"])
     out["lc_p"] = fit_power_law_err(out["p"], out["lc"])
     out["lc_dz"] = fit_power_law_err(dz, out["lc"])
@@ -363,6 +368,11 @@ def fig6e_sigma_dz(runs, fits, across):
     fa = ac["sigma_dz_all"]
     ax.loglog(ac["dz_all"], ac["sigma"], "s", mfc="none", color="C1",
               label=f"δz from z_all (all particles): {fa['exponent']:.2f} ± {fa['err']:.2f}")
+    fd = ac["sigma_dz_dp1"]
+    if fd["n"] >= 2:
+        ax.loglog(ac["dz_dp1"], ac["sigma"], "^", mfc="none", color="C2",
+                  label=f"δz, rattlers < d+1 contacts (z ≥ 3 only): {fd['exponent']:.2f} ± "
+                        f"{fd['err']:.2f}")
     ax.set_title(f"fit exponent {f['exponent']:.2f} ± {f['err']:.2f} (z2)", fontsize=9)
     ax.legend(fontsize=8)
     ax2.semilogy(ac["phi"], ac["sigma"], "o", label="⟨σ⟩")
@@ -531,6 +541,7 @@ def format_across_suspension(ac: dict) -> list[str]:
              fl("omega_min", PRED["omega_min"]),
              f"  delta_gamma * sigma = {ac['delta_gamma_sigma'][0]:.4g} (sd {ac['delta_gamma_sigma'][1]:.2g})"]
     for key, pred in (("sigma_dz", PRED["sigma_dz"]), ("sigma_dz_all", PRED["sigma_dz"]),
+                      ("sigma_dz_dp1", PRED["sigma_dz"]),
                       ("lc_p", PRED["lc_p"]), ("lc_dz", PRED["lc_dz"])):
         f = ac.get(key, {})
         lines.append(f"  {key}: exponent {f.get('exponent', math.nan):.3f} +- {f.get('err', math.nan):.3f} "
