@@ -1874,16 +1874,22 @@ def make_plots(path: str, outdir: str | None = None, fmt: str = "png",
         if models is not None and run.model not in models:
             res.skipped.append((name, f"model is {run.model!r}, not {'/'.join(sorted(models))}"))
             continue
-        try:
-            fig = func(run, fits)
-        except Skip as exc:
-            res.skipped.append((name, str(exc)))
-            continue
-        except Exception as exc:  # a bad figure must not cost the others
-            res.failed.append((name, f"{type(exc).__name__}: {exc}"))
-            continue
-        res.written.append(_save(fig, outdir, name, fmt))
+        _draw(res, name, lambda: func(run, fits), outdir, fmt)
     return res
+
+
+def _draw(res: PlotResult, name: str, draw, outdir: str, fmt: str) -> None:
+    """Draw one figure into ``res``: written, skipped (:class:`Skip`) or failed (any other
+    exception: a bad figure must not cost the others)."""
+    try:
+        fig = draw()
+    except Skip as exc:
+        res.skipped.append((name, str(exc)))
+        return
+    except Exception as exc:
+        res.failed.append((name, f"{type(exc).__name__}: {exc}"))
+        return
+    res.written.append(_save(fig, outdir, name, fmt))
 
 
 def _fits(run: Run) -> dict:
@@ -1933,15 +1939,7 @@ def make_across_plots(paths: list[str], outdir: str | None = None, fmt: str = "p
                             _suspension_across(fl) if model == "suspension" else {})
             res.fits = dict(runs=fl, across=cache[model][1])
         fl, ac = cache[model]
-        try:
-            fig = func(sel, fl, ac)
-        except Skip as exc:
-            res.skipped.append((name, str(exc)))
-            continue
-        except Exception as exc:  # a bad figure must not cost the others
-            res.failed.append((name, f"{type(exc).__name__}: {exc}"))
-            continue
-        res.written.append(_save(fig, outdir, name, fmt))
+        _draw(res, name, lambda: func(sel, fl, ac), outdir, fmt)
     return res
 
 
