@@ -39,8 +39,10 @@ def summarise(path: str, transient: float = 3.0) -> dict:
     m = (ts["step"] > 0) & (strain <= transient + 1e-12)
     k = np.flatnonzero(m)
     status = str(a["status"])
-    if status == "failed" and "KeyboardInterrupt" in str(a.get("message", "")):
+    if status == "interrupted" or (status == "failed" and "KeyboardInterrupt" in str(a.get("message", ""))):
         status = "stopped by hand"
+    elif status == "running":
+        status = "still running"
     rec = dict(file=os.path.relpath(path, ROOT), status=status, phi=round(phi, 5), loadavg_end=[float(x) for x in a.get("loadavg_end", [])],
                n_ranks=int(a["n_ranks"]), steps=int(a["steps"]),
                strain=float(strain[-1]), loop_seconds=round(float(a.get("wall_seconds", wall[-1])), 1),

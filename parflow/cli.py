@@ -79,13 +79,22 @@ def run_main(prog: str, body) -> int:
 
     InputError (collective by construction): one line on rank 0, exit 2.
     SolveError/Jammed raised collectively: one line, exit 1.
+    KeyboardInterrupt / SIGTERM (:class:`Terminated`): one line, exit 130 / 143 (a run has
+    written its checkpoint and status on the way out).
     Anything else: traceback, then MPI_Abort when running on several ranks.
     """
+    import signal
+
     from mpi4py import MPI
 
     from .solvers import SolveError
-    from .state import InputError
+    from .state import InputError, Terminated
     comm = MPI.COMM_WORLD
+
+    def on_term(signum, frame):
+        raise Terminated(f"signal {signum} (SIGTERM)")
+
+    signal.signal(signal.SIGTERM, on_term)
     try:
         code = body() or 0
         _collective_cleanup()
@@ -100,11 +109,13 @@ def run_main(prog: str, body) -> int:
             print(f"{prog}: solver error: {exc}", file=sys.stderr)
         _collective_cleanup()
         return 1
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
+    except (KeyboardInterrupt, Terminated) as exc:
+        term = isinstance(exc, Terminated)
+        print(f"{prog}: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+        code = 143 if term else 130
         if comm.size > 1:
-            comm.Abort(130)
-        return 130
+            comm.Abort(code)
+        return code
     except Exception:
         traceback.print_exc()
         sys.stderr.flush()

@@ -22,7 +22,7 @@ from .integrate import Jammed, StepControl
 from .io import RunWriter, load_group, read_run
 from .models import get_model
 from .solvers import SolveError, unused_options
-from .state import Bonds, InputError, State
+from .state import Bonds, InputError, State, Terminated
 
 log = logging.getLogger("parflow")
 
@@ -273,7 +273,11 @@ class Run:
             eng.on_jammed()
             self._analysis(writer, eng, step, strain, obs)
         except BaseException as exc:
-            status, message = "failed", f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, sigma = {obs['sigma']:.4g})"
+            stopped = isinstance(exc, (KeyboardInterrupt, Terminated))
+            status = "interrupted" if stopped else "failed"
+            message = (f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, "
+                       f"sigma = {obs['sigma']:.4g})"
+                       + ("; continue with --restart" if stopped else ""))
             if writer:
                 checkpoint()
                 writer.set_attrs(status=status, message=message, steps=step,

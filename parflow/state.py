@@ -20,6 +20,11 @@ class InputError(ValueError):
     """A user error: reported as one line, without a traceback."""
 
 
+class Terminated(BaseException):
+    """SIGTERM arrived (``kill``, a batch scheduler's time limit): the run stops at once,
+    leaves a checkpoint and says so in its status, like an interrupt."""
+
+
 @dataclass
 class Bonds:
     """Persistent rods.  ``i``, ``j``: node indices; ``shift``: (Nb, d) integer image

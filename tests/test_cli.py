@@ -143,9 +143,9 @@ def test_two_rank_run_completes(tmp_path):
         assert f.attrs["n_ranks"] == 2 and f.attrs["status"] == "complete"
 
 
-def test_killed_run_leaves_a_readable_file(tmp_path):
-    """SIGKILL in the middle of a run: the file is the complete file of the last flush."""
-    import signal
+def _signal_mid_run(tmp_path, sig):
+    """Start a long chain run, send ``sig`` once it has flushed a few rows; returns
+    (exit code, stderr, output path)."""
     import time
     out = tmp_path / "o.h5"
     text = GOOD.replace("N = 50", "N = 3000").replace("V2_above = 100.0", "V2_above = 1e12") + \
@@ -153,7 +153,7 @@ def test_killed_run_leaves_a_readable_file(tmp_path):
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     proc = subprocess.Popen([sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
                              "--output", str(out), "--quiet", "--no-plots"], env=env,
-                            stderr=subprocess.PIPE)
+                            stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 60
         while time.time() < deadline:
@@ -164,9 +164,32 @@ def test_killed_run_leaves_a_readable_file(tmp_path):
                         break
         time.sleep(0.7)
     finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    return proc.returncode, err, out
+
+
+def test_killed_run_leaves_a_readable_file(tmp_path):
+    """SIGKILL in the middle of a run: the file is the complete file of the last flush."""
+    import signal
+    _, _, out = _signal_mid_run(tmp_path, signal.SIGKILL)
     with h5py.File(out) as f:                        # opens: not corrupt
         assert f.attrs["status"] == "running"
         n = f["timeseries/step"].shape[0]
         assert n > 5 and all(f["timeseries"][k].shape == (n,) for k in f["timeseries"])
+
+
+def test_sigterm_stops_with_checkpoint_and_status(tmp_path):
+    """SIGTERM (kill, a scheduler's time limit): exit 143, status 'interrupted', a checkpoint
+    at the last step; the run continues from it with --restart."""
+    import signal
+    code, err, out = _signal_mid_run(tmp_path, signal.SIGTERM)
+    assert code == 143 and "terminated" in err
+    with h5py.File(out) as f:
+        assert f.attrs["status"] == "interrupted" and "--restart" in f.attrs["message"]
+        n = f["timeseries/step"].shape[0]
+        assert int(f["checkpoint"].attrs["step"]) == int(f["timeseries/step"][-1]) == n - 1
+    res = shear("--restart", out, "--max-steps", n + 3, "--no-plots", "--quiet")
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out) as f:
+        assert f.attrs["status"] == "budget" and f["timeseries/step"][-1] == n + 3
