@@ -195,12 +195,18 @@ def frozen_omega_min(comm, state: State, F, scene: dict) -> float:
         system.destroy()
 
 
+def _heun(system, scene: dict):
+    """The step control of the scene's [integrator] and a Heun stepper on ``system``."""
+    from ..integrate import Heun, StepControl
+    control = StepControl(**scene["integrator"])
+    return control, Heun(system, control)
+
+
 def delta_gamma(system, frozen: State, F0, direction: int, scene: dict, factor: float,
                 max_strain: float, max_steps: int = 20_000) -> dict:
     """Shear the frozen network against ``direction`` until sigma >= factor * sigma_0."""
-    from ..integrate import Heun, Jammed, StepControl
-    control = StepControl(**scene["integrator"])
-    integ = Heun(system, control)
+    from ..integrate import Jammed
+    control, integ = _heun(system, scene)
     s, g, F = frozen.s, frozen.gamma, F0
     sigma0 = F.sigma
     target = factor * sigma0
@@ -239,9 +245,8 @@ def relaxation_rate(system, frozen: State, F0, direction: int, scene: dict,
     the derivative of the frozen network's sigma along the flow (``direction``) is the
     suspension's.  ``steps`` Heun steps of strain rel / sigma_0 each; the derivative at 0
     from a quadratic fit of sigma(x).  C = sigma_0^2 / (-dsigma/dgamma) (paper: constant)."""
-    from ..integrate import Heun, Jammed, StepControl
-    control = StepControl(**scene["integrator"])
-    integ = Heun(system, control)
+    from ..integrate import Jammed
+    _, integ = _heun(system, scene)
     s, g, F = frozen.s, frozen.gamma, F0
     sigma0 = F.sigma
     h = rel / max(sigma0, 1e-300)
