@@ -44,7 +44,7 @@ def summarise(path: str, transient: float = 3.0) -> dict:
     elif status == "running":
         status = "still running"
     rec = dict(file=os.path.relpath(path, ROOT), status=status, phi=round(phi, 5), loadavg_end=[float(x) for x in a.get("loadavg_end", [])],
-               n_ranks=int(a["n_ranks"]), steps=int(a["steps"]),
+               n_ranks=int(a["n_ranks"]), steps=int(a.get("steps", ts["step"][-1])),
                strain=float(strain[-1]), loop_seconds=round(float(a.get("wall_seconds", wall[-1])), 1),
                max_overlap=float(a.get("max_overlap", np.nan)),
                singular_events=int(a.get("singular_events", 0)),
