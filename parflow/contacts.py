@@ -134,7 +134,7 @@ class _Factor:
     COMM_SELF, or scipy's SuperLU).  ``solve`` returns None if the factorisation broke down."""
 
     def __init__(self, M: sp.csr_matrix, factor: str):
-        self.kind, self.lu, self.ksp, self.factored = factor, None, None, False
+        self.kind, self.lu, self.ksp, self.factored, self.F = factor, None, None, False, None
         if factor == "superlu":
             try:
                 self.lu = spla.splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
@@ -176,8 +176,12 @@ class _Factor:
             B = PETSc.Mat().createDense((n, k), array=np.asfortranarray(rhs), comm=PETSc.COMM_SELF)
             X = PETSc.Mat().createDense((n, k), comm=PETSc.COMM_SELF)
             X.setUp()
+            if self.F is None:
+                # kept and destroyed with the rest: a dropped wrapper would hold the factor
+                # until PETSc.garbage_cleanup()
+                self.F = self.pc.getFactorMatrix()
             try:
-                self.pc.getFactorMatrix().matSolve(B, X)
+                self.F.matSolve(B, X)
                 out = X.getDenseArray().copy()
             except PETSc.Error:
                 out = None
@@ -198,9 +202,10 @@ class _Factor:
         if self.ksp is not None:
             # pc too: petsc4py defers the destruction of a dropped wrapper to
             # garbage_cleanup(), and the PC holds the factor (~10 MB at N_AA = 2000)
-            for o in (self.ksp, self.pc, self.A, self.x, self.b):
-                o.destroy()
-            self.ksp = None
+            for o in (self.ksp, self.pc, self.A, self.x, self.b, self.F):
+                if o is not None:
+                    o.destroy()
+            self.ksp = self.F = None
 
 
 def _solution_ok(res: np.ndarray, x_A: np.ndarray, rhs: np.ndarray, norm: float,
