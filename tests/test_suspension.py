@@ -277,11 +277,22 @@ def test_bordered_singular_border_falls_back(dense):
     info = su.LCPInfo()
     act = co.ActiveSolver(N, q, info)
     act.solve(A)
-    assert act.kind == "cholmod"
     A[-1] = True
     x = act.solve(A)
     act.release()
     assert info.singular == 1 and info.bordered == 0 and np.all(np.isfinite(x))
-    # CHOLMOD broke down: the rest of this LCP factorises with SuperLU (a failed CHOLMOD
-    # factorisation leaks its partial factor in PETSc 3.18)
-    assert act.kind == "superlu"
+
+
+def test_cholmod_breakdown_switches_to_superlu():
+    """A matrix CHOLMOD cannot factor (singular: blocks of rank 1): the event is counted and
+    the rest of the LCP factorises with SuperLU (a CHOLMOD factorisation that breaks down
+    leaks its partial factor in PETSc 3.18)."""
+    import scipy.sparse as sp
+    N = sp.kron(sp.identity(100), sp.csr_matrix(np.ones((4, 4)))).tocsr()
+    info = su.LCPInfo()
+    act = co.ActiveSolver(N, -np.ones(400), info)
+    assert act.kind == "cholmod"
+    x = act.solve(np.ones(400, bool))
+    assert np.all(np.isfinite(x))
+    act.release()
+    assert info.singular == 1 and act.kind == "superlu"
