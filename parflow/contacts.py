@@ -244,7 +244,7 @@ class ActiveSolver:
 
     def __init__(self, N: sp.csr_matrix, q: np.ndarray, info: LCPInfo, factor: str = "cholmod",
                  eps: float = 1e-12, max_border: int = 80):
-        self.N, self.q, self.info, self.factor = N, q, info, factor
+        self.N, self.q, self.info = N, q, info
         self.eps, self.max_border = eps, max_border
         self.nc = q.shape[0]
         self.kind = factor             # the factorisation in use (CHOLMOD -> SuperLU, below)
