@@ -264,7 +264,7 @@ class ContactEngine:
         attrs = {k: ck[k] for k in ("gamma", "sigma", "vmax", "steps", "collisions", "max_overlap",
                                     "singular_events", "infeasible_reductions")}
         attrs["direction"] = self._direction
-        attrs["dgamma"] = 0.0
+        attrs["dgamma"] = ck["last_dg"]
         return arrays, attrs
 
     def on_jammed(self) -> None:

@@ -53,6 +53,11 @@ SMALL_DIAMETER = 1.0
 RADIUS_RATIO = 1.4
 DEFAULT_SKIN = 0.3
 FIRST_DGAMMA = 1e-4
+# a step is at most this many times the last accepted one: after a step had to be cut
+# (an infeasible LCP, /10 per retry) the next ones grow back geometrically instead of
+# starting again from c/sigma -- near shear jamming that start failed again and again
+# (phi = 0.84: up to 600 solves per failed LCP, ~1e-4 strain per minute)
+MAX_GROWTH = 4.0
 
 
 # =========================================================================== initial states
@@ -229,12 +234,14 @@ class Suspension:
         self.collisions = 0
         self.singular_events = 0
         self._active_keys = np.zeros(0, np.int64)
+        self.last_dg = 0.0             # the last accepted step (0: none yet)
         self.last_f = None
         self.last_c = None
 
     def next_dgamma(self) -> float:
-        """The strain step before the checks of the step: min(dg_max, c/sigma, dmax/max|V|)
-        with sigma and max|V| of the previous step; the first step (no sigma yet) is at most
+        """The strain step before the checks of the step: min(dg_max, c/sigma, dmax/max|V|,
+        MAX_GROWTH x the last accepted step) with sigma and max|V| of the previous step; the
+        first step (no sigma yet) is at most
         FIRST_DGAMMA (dense initial states have every gap ~1e-6 a0: a large first step
         makes the cold-start LCP infeasible and costs ~1000 active-set iterations, measured
         at N = 1024, phi = 0.84)."""
@@ -243,6 +250,8 @@ class Suspension:
             dg = min(dg, self.c / self.sigma)
         if self.vmax > 0:
             dg = min(dg, self.dmax / self.vmax)
+        if self.last_dg > 0:
+            dg = min(dg, MAX_GROWTH * self.last_dg)
         return dg
 
     def _keys(self, c: Candidates) -> np.ndarray:
@@ -322,7 +331,7 @@ class Suspension:
                           float(f @ c.dist) / (st.d * omega), len(c), int(active.sum()),
                           n_new, n_coll, overlap, info,
                           dict(search=t1 - t0, lcp=t2 - t1, update=time.perf_counter() - t2))
-        self.sigma, self.vmax = sigma, vmax
+        self.sigma, self.vmax, self.last_dg = sigma, vmax, dg
         self.steps += 1
         self.last_f, self.last_c, self.last_V = f, c, V
         return stats
@@ -332,7 +341,8 @@ class Suspension:
         (sigma, max |V_na| of the last step) and the warm active set, keyed by (i, j)."""
         st = self.state
         return dict(s=st.s.copy(), h0=st.h0.copy(), gamma=float(st.gamma), radii=st.radii.copy(),
-                    sigma=self.sigma, vmax=self.vmax, active_keys=self._active_keys.copy(),
+                    sigma=self.sigma, vmax=self.vmax, last_dg=self.last_dg,
+                    active_keys=self._active_keys.copy(),
                     steps=self.steps, collisions=self.collisions, max_overlap=self.max_overlap,
                     singular_events=self.singular_events,
                     infeasible_reductions=self.infeasible_reductions,
@@ -349,6 +359,7 @@ class Suspension:
         state.meta["model"] = "suspension"
         sim = cls(state, **ck["controls"])
         sim.sigma, sim.vmax = float(ck["sigma"]), float(ck["vmax"])
+        sim.last_dg = float(ck.get("last_dg", 0.0))
         sim._active_keys = np.array(ck["active_keys"], np.int64)
         sim.steps, sim.collisions = int(ck["steps"]), int(ck["collisions"])
         sim.max_overlap = max(sim.max_overlap, float(ck["max_overlap"]))

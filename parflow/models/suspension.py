@@ -141,7 +141,8 @@ def controls(meta: dict) -> dict:
 def restore_dict(state: State, ck: dict) -> dict:
     """The ``Suspension.restore`` dict from the run file's initial state and checkpoint."""
     return dict(s=ck["s"], h0=state.h0, gamma=ck["gamma"], radii=state.radii,
-                sigma=ck["sigma"], vmax=ck["vmax"], active_keys=ck["active_keys"],
+                sigma=ck["sigma"], vmax=ck["vmax"], last_dg=ck.get("dgamma", 0.0),
+                active_keys=ck["active_keys"],
                 steps=ck["steps"], collisions=ck["collisions"], max_overlap=ck["max_overlap"],
                 singular_events=ck["singular_events"],
                 infeasible_reductions=ck["infeasible_reductions"], controls=controls(state.meta))
