@@ -252,6 +252,17 @@ class ActiveSolver:
         self._rowsum = np.asarray(abs(N).sum(axis=1)).ravel()
 
     # ------------------------------------------------------------------ fresh factorisation
+    def _factorise(self, M: sp.csr_matrix, rhs: np.ndarray):
+        """(factor of M, M^-1 rhs or None if the factorisation broke down)."""
+        fac = _Factor(M, self.kind)
+        y = fac.solve(rhs)
+        if y is None and self.kind == "cholmod":
+            # a CHOLMOD factorisation that breaks down leaks its partial factor (PETSc 3.18:
+            # ~0.4 MB at 7 600 rows, measured; 5 GB in 80 minutes at phi = 0.84): the rest of
+            # this LCP factorises with SuperLU, which reports a singular matrix cleanly
+            self.kind = "superlu"
+        return fac, y
+
     def _fresh(self, A: np.ndarray, idx: np.ndarray) -> np.ndarray:
         info, N = self.info, self.N
         self.release()
@@ -260,13 +271,7 @@ class ActiveSolver:
         norm = float(np.max(np.abs(M).sum(axis=1)))
         t0 = time.perf_counter()
         info.factorizations += 1
-        fac = _Factor(M, self.kind)
-        y = fac.solve(rhs)
-        if y is None and self.kind == "cholmod":
-            # a CHOLMOD factorisation that breaks down leaks its partial factor (PETSc 3.18:
-            # ~0.4 MB at 7 600 rows, measured; 5 GB in 80 minutes at phi = 0.84): the rest of
-            # this LCP factorises with SuperLU, which reports a singular matrix cleanly
-            self.kind = "superlu"
+        fac, y = self._factorise(M, rhs)
         x = np.zeros(self.nc)
         if y is not None and _solution_ok(M @ y - rhs, y, rhs, norm, 1e-8):
             pos = np.full(self.nc, -1, np.int64)
@@ -282,12 +287,11 @@ class ActiveSolver:
         info.singular += 1
         shift = self.eps * max(norm, 1.0)
         Ms = (M + shift * sp.identity(idx.size, format="csr")).tocsr()
-        fac = _Factor(Ms, self.kind)
-        y = fac.solve(rhs)
+        fac, y = self._factorise(Ms, rhs)
         fac.destroy()
-        if y is None and self.kind != "superlu":
-            fac = _Factor(Ms, "superlu")
-            y = fac.solve(rhs)
+        if y is None and fac.kind == "cholmod":      # broke down: SuperLU from now on
+            fac, y = self._factorise(Ms, rhs)
+            fac.destroy()
         info.factor_time += time.perf_counter() - t0
         if y is None:
             raise LCPFailure(f"contact LCP: the shifted active N ({idx.size} contacts) "
@@ -409,16 +413,6 @@ class ActiveSolver:
         if self.base is not None:
             self.base["fac"].destroy()
             self.base = None
-
-
-def solve_active(N: sp.csr_matrix, q: np.ndarray, A: np.ndarray, info: LCPInfo,
-                 eps: float = 1e-12, factor: str = "cholmod") -> np.ndarray:
-    """Solve N_AA x = -q_A (A: boolean mask) with a fresh factorisation (see ActiveSolver)."""
-    act = ActiveSolver(N, q, info, factor, eps)
-    try:
-        return act.solve(A)
-    finally:
-        act.release()
 
 
 def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,

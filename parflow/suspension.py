@@ -45,7 +45,7 @@ import numpy as np
 
 from .cell import cell_at, velocity_gradient
 from .contacts import (FACTORS, Candidates, LCPFailure, LCPInfo, find_candidates,  # noqa: F401
-                       remap, rigidity, solve_active, solve_lcp)
+                       remap, rigidity, solve_lcp)
 from .state import InputError, State
 
 PHI_J = 0.843              # shear-jamming packing fraction of the 50:50, 1.4 mixture (2D)
