@@ -79,8 +79,9 @@ def run_main(prog: str, body) -> int:
 
     InputError (collective by construction): one line on rank 0, exit 2.
     SolveError/Jammed raised collectively: one line, exit 1.
-    KeyboardInterrupt / SIGTERM (:class:`Terminated`): one line, exit 130 / 143 (a run has
-    written its checkpoint and status on the way out).
+    KeyboardInterrupt / SIGTERM (:class:`Terminated`): one line, exit 130 / 143 (a run takes
+    the signal at the end of the step under way, on all ranks at once, and writes its
+    checkpoint and status on the way out; a signal elsewhere, or a second one, aborts).
     Anything else: traceback, then MPI_Abort when running on several ranks.
     """
     import signal
@@ -88,13 +89,12 @@ def run_main(prog: str, body) -> int:
     from mpi4py import MPI
 
     from .solvers import SolveError
-    from .state import InputError, Terminated
+    from .state import STOPS, InputError, Terminated
     comm = MPI.COMM_WORLD
 
-    def on_term(signum, frame):
-        raise Terminated(f"signal {signum} (SIGTERM)")
-
-    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGTERM, lambda signum, frame: STOPS.handle(2))
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:   # not if ignored (`&`)
+        signal.signal(signal.SIGINT, lambda signum, frame: STOPS.handle(1))
     try:
         code = body() or 0
         _collective_cleanup()
@@ -111,10 +111,14 @@ def run_main(prog: str, body) -> int:
         return 1
     except (KeyboardInterrupt, Terminated) as exc:
         term = isinstance(exc, Terminated)
-        print(f"{prog}: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+        collective = getattr(exc, "collective", False)
+        if comm.rank == 0 or not collective:
+            print(f"{prog}: {'terminated' if term else 'interrupted'}", file=sys.stderr)
         code = 143 if term else 130
-        if comm.size > 1:
-            comm.Abort(code)
+        if comm.size > 1 and not collective:
+            comm.Abort(code)       # raised on one rank, or mid-step: the others may be anywhere
+        if collective:
+            _collective_cleanup()
         return code
     except Exception:
         traceback.print_exc()

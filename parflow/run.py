@@ -22,7 +22,7 @@ from .integrate import Jammed, StepControl
 from .io import RunWriter, load_group, read_run
 from .models import get_model
 from .solvers import SolveError, unused_options
-from .state import Bonds, InputError, State, Terminated
+from .state import STOPS, Bonds, InputError, State, Terminated
 
 log = logging.getLogger("parflow")
 
@@ -214,77 +214,83 @@ class Run:
             wom = eng.omega_min() if self.obs_cfg["omega_min_every"] else float("nan")
             record(obs, wom)
             self._analysis(writer, eng, step, strain, obs)
-        try:
-            while leg_k < len(legs):
-                leg = legs[leg_k]
-                why = leg.reason_to_stop(obs, leg_strain, leg_steps)
-                if why is None and step >= scene["protocol"]["max_steps"]:
-                    status, message = "budget", f"step budget protocol.max_steps = {step} used"
-                    log.info("stopping: %s", message)
-                    break
-                if why is not None:
-                    log.info("leg %d/%d (%s) done at step %d, gamma = %.10g: %s", leg_k + 1,
-                             len(legs), leg.spec["direction"], step, eng.gamma, why)
-                    self._analysis(writer, eng, step, strain, obs)
-                    leg_k, leg_strain, leg_steps = leg_k + 1, 0.0, 0
-                    leg_start_obs, t_leg, steps_at_leg_start = dict(obs), time.monotonic(), step
-                    eta_est = EtaEstimate()
-                    continue
-                cap = leg.spec["strain"] - leg_strain if "strain" in leg.spec else None
-                dgamma = eng.step(leg.direction, cap)
-                step += 1
-                leg_steps += 1
-                strain += abs(dgamma)
-                leg_strain += abs(dgamma)
-                obs = eng.observe()
-                every = self.obs_cfg["omega_min_every"]
-                wom = eng.omega_min() if every and step % every == 0 else float("nan")
-                wom_last = wom if np.isfinite(wom) else wom_last
-                record(obs, wom)
-                if not (np.isfinite(obs["sigma"]) and np.isfinite(obs["V2"])):
-                    raise SolveError(f"non-finite stress at step {step}, gamma = {eng.gamma:.10g}")
-                level, strain_mark = self._maybe_analysis(writer, eng, step, strain, obs, level,
-                                                          strain_mark)
-                if self.obs_cfg["snapshot_every"] and step % self.obs_cfg["snapshot_every"] == 0 and writer:
-                    writer.add_group(f"snapshots/{step:08d}", eng.snapshot(),
-                                     dict(step=step, gamma=eng.gamma, sigma=obs["sigma"]))
-                now = time.monotonic()
-                if step - last_ck_step >= scene["output"]["checkpoint_every"] or \
-                        now - last_ck_time >= 60 * scene["output"]["checkpoint_minutes"]:
-                    checkpoint()
-                    last_ck_step, last_ck_time = step, now
-                if writer and writer.due():
+        with STOPS.deferred():   # a signal stops the loop between steps
+            try:
+                while leg_k < len(legs):
+                    STOPS.check(comm)
+                    leg = legs[leg_k]
+                    why = leg.reason_to_stop(obs, leg_strain, leg_steps)
+                    if why is None and step >= scene["protocol"]["max_steps"]:
+                        status, message = "budget", f"step budget protocol.max_steps = {step} used"
+                        log.info("stopping: %s", message)
+                        break
+                    if why is not None:
+                        log.info("leg %d/%d (%s) done at step %d, gamma = %.10g: %s", leg_k + 1,
+                                 len(legs), leg.spec["direction"], step, eng.gamma, why)
+                        self._analysis(writer, eng, step, strain, obs)
+                        leg_k, leg_strain, leg_steps = leg_k + 1, 0.0, 0
+                        leg_start_obs, t_leg, steps_at_leg_start = dict(obs), time.monotonic(), step
+                        eta_est = EtaEstimate()
+                        continue
+                    cap = leg.spec["strain"] - leg_strain if "strain" in leg.spec else None
+                    dgamma = eng.step(leg.direction, cap)
+                    step += 1
+                    leg_steps += 1
+                    strain += abs(dgamma)
+                    leg_strain += abs(dgamma)
+                    obs = eng.observe()
+                    every = self.obs_cfg["omega_min_every"]
+                    wom = eng.omega_min() if every and step % every == 0 else float("nan")
+                    wom_last = wom if np.isfinite(wom) else wom_last
+                    record(obs, wom)
+                    if not (np.isfinite(obs["sigma"]) and np.isfinite(obs["V2"])):
+                        raise SolveError(f"non-finite stress at step {step}, gamma = {eng.gamma:.10g}")
+                    level, strain_mark = self._maybe_analysis(writer, eng, step, strain, obs, level,
+                                                              strain_mark)
+                    snap = self.obs_cfg["snapshot_every"]
+                    if writer and snap and step % snap == 0:
+                        writer.add_group(f"snapshots/{step:08d}", eng.snapshot(),
+                                         dict(step=step, gamma=eng.gamma, sigma=obs["sigma"]))
+                    now = time.monotonic()
+                    if step - last_ck_step >= scene["output"]["checkpoint_every"] or \
+                            now - last_ck_time >= 60 * scene["output"]["checkpoint_minutes"]:
+                        checkpoint()
+                        last_ck_step, last_ck_time = step, now
+                    if writer and writer.due():
+                        writer.flush()
+                    if now - last_progress >= scene["output"]["progress_seconds"]:
+                        last_progress = now
+                        frac = leg.fraction(obs, leg_start_obs, leg_strain, leg_steps)
+                        rate = (step - steps_at_leg_start) / max(now - t_leg, 1e-9)
+                        eta = eta_est.update(now, frac)
+                        log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
+                                 "  %.1f steps/s  leg ETA %s", step, leg_k + 1, len(legs),
+                                 "fwd" if leg.direction > 0 else "rev", eng.gamma, obs["sigma"], obs["V2"],
+                                 abs(dgamma), f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
+                                 rate, _hms(eta))
+                else:
+                    status, message = "complete", f"all {len(legs)} legs done"
+            except Jammed as exc:
+                status, message = "jammed", str(exc)
+                log.info("stopping: %s", message)
+                eng.on_jammed()
+                self._analysis(writer, eng, step, strain, obs)
+            except BaseException as exc:
+                stopped = isinstance(exc, (KeyboardInterrupt, Terminated))
+                status = "interrupted" if stopped else "failed"
+                message = (f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, "
+                           f"sigma = {obs['sigma']:.4g})"
+                           + ("; continue with --restart" if stopped else ""))
+                if getattr(exc, "mid_step", False):
+                    message += " (second signal: stopped mid-step, no new checkpoint)"
+                if writer:
+                    if not getattr(exc, "mid_step", False):
+                        checkpoint()
+                    writer.set_attrs(status=status, message=message, steps=step,
+                                     wall_seconds=time.monotonic() - t_start,
+                                     loadavg_end=np.array(os.getloadavg()), **eng.counters())
                     writer.flush()
-                if now - last_progress >= scene["output"]["progress_seconds"]:
-                    last_progress = now
-                    frac = leg.fraction(obs, leg_start_obs, leg_strain, leg_steps)
-                    rate = (step - steps_at_leg_start) / max(now - t_leg, 1e-9)
-                    eta = eta_est.update(now, frac)
-                    log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
-                             "  %.1f steps/s  leg ETA %s", step, leg_k + 1, len(legs),
-                             "fwd" if leg.direction > 0 else "rev", eng.gamma, obs["sigma"], obs["V2"],
-                             abs(dgamma), f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
-                             rate, _hms(eta))
-            else:
-                status, message = "complete", f"all {len(legs)} legs done"
-        except Jammed as exc:
-            status, message = "jammed", str(exc)
-            log.info("stopping: %s", message)
-            eng.on_jammed()
-            self._analysis(writer, eng, step, strain, obs)
-        except BaseException as exc:
-            stopped = isinstance(exc, (KeyboardInterrupt, Terminated))
-            status = "interrupted" if stopped else "failed"
-            message = (f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, "
-                       f"sigma = {obs['sigma']:.4g})"
-                       + ("; continue with --restart" if stopped else ""))
-            if writer:
-                checkpoint()
-                writer.set_attrs(status=status, message=message, steps=step,
-                                 wall_seconds=time.monotonic() - t_start,
-                                 loadavg_end=np.array(os.getloadavg()), **eng.counters())
-                writer.flush()
-            raise
+                raise
         checkpoint()
         if writer:
             writer.set_attrs(status=status, message=message, steps=step,

@@ -11,6 +11,7 @@ Conventions (docs/conventions.md, DESIGN §2):
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,8 +22,59 @@ class InputError(ValueError):
 
 
 class Terminated(BaseException):
-    """SIGTERM arrived (``kill``, a batch scheduler's time limit): the run stops at once,
-    leaves a checkpoint and says so in its status, like an interrupt."""
+    """SIGTERM arrived (``kill``, a batch scheduler's time limit): the run stops at the end
+    of the step under way, leaves a checkpoint and says so in its status, like an interrupt."""
+
+
+class StopSignals:
+    """SIGINT/SIGTERM, taken at step boundaries.
+
+    Outside a run loop a signal raises at once (KeyboardInterrupt / :class:`Terminated`).
+    Inside ``with STOPS.deferred():`` the handler only records it, and the loop calls
+    :meth:`check` between steps: the exception is raised there, on every rank at the same
+    step (one allreduce when there are several ranks), so that the checkpoint written on the
+    way out is the state after a whole step and matches the last time-series row.  A second
+    signal while one is pending raises at once, mid-step (``mid_step``: no checkpoint is
+    written then; on several ranks the run aborts, since the ranks may be anywhere).
+    """
+
+    CODES = {1: KeyboardInterrupt, 2: Terminated}
+
+    def __init__(self):
+        self.depth = 0
+        self.pending = 0
+
+    def handle(self, code: int) -> None:
+        exc = self.CODES[code](f"signal {'SIGINT' if code == 1 else 'SIGTERM'}")
+        if self.depth == 0 or self.pending:
+            exc.mid_step, exc.collective = self.depth > 0, False
+            self.pending = 0
+            raise exc
+        self.pending = max(self.pending, code)
+
+    @contextmanager
+    def deferred(self):
+        self.depth += 1
+        try:
+            yield self
+        finally:
+            self.depth -= 1
+            if self.depth == 0:
+                self.pending = 0   # came during the last step: the run has ended anyway
+
+    def check(self, comm=None) -> None:
+        code = self.pending
+        if comm is not None and comm.getSize() > 1:
+            from mpi4py import MPI
+            code = comm.tompi4py().allreduce(code, op=MPI.MAX)
+        if code:
+            self.pending = 0
+            exc = self.CODES[code](f"signal {'SIGINT' if code == 1 else 'SIGTERM'}")
+            exc.mid_step, exc.collective = False, True
+            raise exc
+
+
+STOPS = StopSignals()
 
 
 @dataclass

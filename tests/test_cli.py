@@ -143,17 +143,19 @@ def test_two_rank_run_completes(tmp_path):
         assert f.attrs["n_ranks"] == 2 and f.attrs["status"] == "complete"
 
 
-def _signal_mid_run(tmp_path, sig):
-    """Start a long chain run, send ``sig`` once it has flushed a few rows; returns
-    (exit code, stderr, output path)."""
+def _signal_mid_run(tmp_path, sig, mpi=0):
+    """Start a long chain run (on ``mpi`` ranks through mpirun if given), send ``sig`` once it
+    has flushed a few rows; returns (exit code, stderr, output path)."""
     import time
     out = tmp_path / "o.h5"
     text = GOOD.replace("N = 50", "N = 3000").replace("V2_above = 100.0", "V2_above = 1e12") + \
         "\n[output]\nflush_seconds = 0.2\n"
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    proc = subprocess.Popen([sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
-                             "--output", str(out), "--quiet", "--no-plots"], env=env,
-                            stderr=subprocess.PIPE, text=True)
+    cmd = [sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
+           "--output", str(out), "--quiet", "--no-plots"]
+    if mpi:
+        cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 60
         while time.time() < deadline:
@@ -179,12 +181,15 @@ def test_killed_run_leaves_a_readable_file(tmp_path):
         assert n > 5 and all(f["timeseries"][k].shape == (n,) for k in f["timeseries"])
 
 
-def test_sigterm_stops_with_checkpoint_and_status(tmp_path):
-    """SIGTERM (kill, a scheduler's time limit): exit 143, status 'interrupted', a checkpoint
-    at the last step; the run continues from it with --restart."""
+@pytest.mark.parametrize("mpi", [0, 2])
+def test_sigterm_stops_with_checkpoint_and_status(tmp_path, mpi):
+    """SIGTERM (kill, a scheduler's time limit; mpirun passes it to every rank): exit 143,
+    status 'interrupted', a checkpoint at the end of the last whole step, which is the last
+    time-series row; the run continues from it with --restart."""
     import signal
-    code, err, out = _signal_mid_run(tmp_path, signal.SIGTERM)
-    assert code == 143 and "terminated" in err
+    code, err, out = _signal_mid_run(tmp_path, signal.SIGTERM, mpi)
+    # mpirun, itself signalled, exits 1 whatever its ranks return
+    assert code == (1 if mpi else 143) and err.count("terminated") == 1, err
     with h5py.File(out) as f:
         assert f.attrs["status"] == "interrupted" and "--restart" in f.attrs["message"]
         n = f["timeseries/step"].shape[0]
