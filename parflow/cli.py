@@ -92,9 +92,11 @@ def run_main(prog: str, body) -> int:
     from .state import STOPS, InputError, Terminated
     comm = MPI.COMM_WORLD
 
-    signal.signal(signal.SIGTERM, lambda signum, frame: STOPS.handle(2))
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:   # not if ignored (`&`)
-        signal.signal(signal.SIGINT, lambda signum, frame: STOPS.handle(1))
+    import threading
+    if threading.current_thread() is threading.main_thread():   # (signals: main thread only)
+        signal.signal(signal.SIGTERM, lambda signum, frame: STOPS.handle(2))
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored (`&`)
+            signal.signal(signal.SIGINT, lambda signum, frame: STOPS.handle(1))
     try:
         code = body() or 0
         _collective_cleanup()
