@@ -202,3 +202,24 @@ def test_signal_stops_with_checkpoint_and_status(tmp_path, name, mpi):
     assert res.returncode == 0, res.stderr
     with h5py.File(out) as f:
         assert f.attrs["status"] == "budget" and f["timeseries/step"][-1] == n + 3
+
+
+def test_stop_signals_are_taken_at_step_boundaries():
+    """StopSignals alone: outside a run loop a signal raises at once; inside, it waits for
+    check(); a second one raises at once, marked mid-step (no checkpoint then)."""
+    from parflow.state import StopSignals, Terminated
+    stops = StopSignals()
+    with pytest.raises(KeyboardInterrupt):
+        stops.handle(1)
+    with stops.deferred():
+        stops.handle(2)                        # recorded, not raised
+        with pytest.raises(Terminated) as exc:
+            stops.check()
+        assert exc.value.collective and not exc.value.mid_step
+        stops.check()                          # taken once
+        stops.handle(1)
+        with pytest.raises(Terminated) as exc:
+            stops.handle(2)
+        assert exc.value.mid_step and not exc.value.collective
+        stops.handle(2)
+    assert stops.pending == 0                  # a signal in the last step is dropped with it
