@@ -163,10 +163,12 @@ def _signal_mid_run(tmp_path, sig, mpi=0):
         deadline = time.time() + 60
         while time.time() < deadline:
             time.sleep(0.5)
-            if out.exists():
-                with h5py.File(out) as f:
-                    if "step" in f["timeseries"] and f["timeseries/step"].shape[0] > 5:
+            try:
+                with h5py.File(out, "r") as f:
+                    if f["timeseries/step"].shape[0] > 5:
                         break
+            except (OSError, KeyError):       # not written yet
+                pass
         time.sleep(0.7)
     finally:
         proc.send_signal(sig)
