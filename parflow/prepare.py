@@ -62,14 +62,12 @@ def compress(X: np.ndarray, radii: np.ndarray, box: np.ndarray, phi: float,
     box1 = box * scale
     X1 = np.ascontiguousarray((X * scale).T)
     pl = pk._PairList(radii * (1.0 + inflate), box1, 0.4, "auto")
-    X1, info = pk.fire_minimize(X1, pl, 1e-12, max_iter=max_iter)
-    X1 = pl.build(X1)
-    _, r = pl.pair_vectors(X1)
-    overl = r < radii[pl.i] + radii[pl.j]
-    if not info["converged"] or np.any(overl):
+    X1, n_overlap, info = su.relax_overlaps(X1, radii, pl, max_iter)
+    if n_overlap != 0:
+        left = "FIRE did not converge" if n_overlap < 0 else f"{n_overlap} overlapping pairs"
         raise InputError(f"prepare: the state compressed to phi = {phi} does not relax to a "
-                         f"non-overlapping one ({int(overl.sum())} overlapping pairs after "
-                         f"{info['iterations']} FIRE iterations): it is jammed there")
+                         f"non-overlapping one ({left} after {info['iterations']} FIRE "
+                         f"iterations): it is jammed there")
     pos = (X1.T - np.floor(X1.T / box1) * box1)
     return pos, box1, dict(phi0=phi0, fire_iterations=int(info["iterations"]),
                            rms_move=float(np.sqrt(np.mean(np.sum(

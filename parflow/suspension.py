@@ -123,10 +123,8 @@ def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_
         raise InputError(f"suspension: N = {n} gives a box of side {L:.3g}: too small, use more discs")
     for attempt in range(tries):
         X = np.ascontiguousarray((rng.random((n, 2)) * box).T)
-        X, info = pk.fire_minimize(X, pl, 1e-12, max_iter=max_iter)
-        X = pl.build(X)
-        _, r = pl.pair_vectors(X)
-        if info["converged"] and not np.any(r < radii[pl.i] + radii[pl.j]):
+        X, n_overlap, info = relax_overlaps(X, radii, pl, max_iter)
+        if n_overlap == 0:
             break
     else:
         raise InputError(f"suspension: no unjammed configuration of N = {n} discs at phi = {phi} "
@@ -142,6 +140,18 @@ def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_
         raise RuntimeError(f"suspension: initial state overlaps by {-gap:.3g}")
     state.meta["initial_min_gap"] = gap
     return state
+
+
+def relax_overlaps(X: np.ndarray, radii: np.ndarray, pl, max_iter: int):
+    """FIRE from the (d, N) positions X on the pair list ``pl`` of the inflated radii, until
+    no inflated pair overlaps.  Returns (X, number of pairs of true discs still overlapping --
+    or -1 if FIRE did not converge --, FIRE info)."""
+    from .models import packing as pk
+    X, info = pk.fire_minimize(X, pl, 1e-12, max_iter=max_iter)
+    X = pl.build(X)
+    _, r = pl.pair_vectors(X)
+    n_overlap = int(np.count_nonzero(r < radii[pl.i] + radii[pl.j]))
+    return X, (n_overlap if info["converged"] else -1), info
 
 
 def from_configuration(positions, radii, box, gamma: float = 0.0) -> State:
