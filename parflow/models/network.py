@@ -672,15 +672,21 @@ def crossing_length(r: np.ndarray, C: np.ndarray, level: float = math.exp(-1),
     return float(rr[k - 1] + (cc[k - 1] - level) / (cc[k - 1] - cc[k]) * (rr[k] - rr[k - 1]))
 
 
-def dense_N(n_unit: np.ndarray, bonds: Bonds, n_nodes: int) -> np.ndarray:
-    """Dense N = S S^T from the unit vectors (sparse S, vectorised)."""
+def sparse_S(n_unit: np.ndarray, i: np.ndarray, j: np.ndarray, n_nodes: int):
+    """S (Nc x dN, scipy CSR) of rods between nodes i and j with unit vectors ``n_unit``:
+    (S V)_alpha = n_alpha . (V_j - V_i)."""
     import scipy.sparse as sp
     nc, d = n_unit.shape
     rows = np.repeat(np.arange(nc), 2 * d)
     comp = np.arange(d)
-    cols = np.concatenate([d * bonds.i[:, None] + comp, d * bonds.j[:, None] + comp], axis=1).ravel()
+    cols = np.concatenate([d * i[:, None] + comp, d * j[:, None] + comp], axis=1).ravel()
     vals = np.concatenate([-n_unit, n_unit], axis=1).ravel()
-    S = sp.csr_matrix((vals, (rows, cols)), shape=(nc, d * n_nodes))
+    return sp.csr_matrix((vals, (rows, cols)), shape=(nc, d * n_nodes))
+
+
+def dense_N(n_unit: np.ndarray, bonds: Bonds, n_nodes: int) -> np.ndarray:
+    """Dense N = S S^T from the unit vectors (sparse S, vectorised)."""
+    S = sparse_S(n_unit, bonds.i, bonds.j, n_nodes)
     return (S @ S.T).toarray()
 
 
