@@ -225,3 +225,17 @@ def test_stop_signals_are_taken_at_step_boundaries():
         assert exc.value.mid_step and not exc.value.collective
         stops.handle(2)
     assert stops.pending == 0                  # a signal in the last step is dropped with it
+
+
+def test_every_scene_in_runs_is_valid():
+    """Each runs/*.toml parses and validates (keys, types, ranges, model parameters)."""
+    import glob
+
+    from parflow.scene import load_scene
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    paths = sorted(glob.glob(os.path.join(root, "runs", "*.toml")))
+    assert len(paths) >= 10
+    for p in paths:
+        with open(p) as f:
+            scene = load_scene(f.read(), p)
+        assert scene["protocol"]["leg"], p
