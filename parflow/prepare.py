@@ -118,11 +118,11 @@ def main(argv=None) -> int:
         X = rectangular_positions(s, h0, gamma)
         box = np.array([h0[0, 0], h0[1, 1]])
         pos, box1, info = compress(X, radii, box, a.phi)
+        from . import suspension as su
+        state = su.from_configuration(pos, radii, box1, 0.0)    # checks: no overlap, phi < phi_J
     except InputError as exc:
         print(f"python -m parflow.prepare: error: {exc}", file=sys.stderr)
         return 2
-    from . import suspension as su
-    state = su.from_configuration(pos, radii, box1, 0.0)        # checks: no overlap, phi < phi_J
     gap = su.min_gap(state)
     tmp = a.out[:-4] + ".part.npz"
     np.savez(tmp, positions=pos, radii=radii, box=box1, gamma=0.0, source=os.path.abspath(a.run),
