@@ -262,7 +262,7 @@ class Run:
                         last_progress = now
                         frac = leg.fraction(obs, leg_start_obs, leg_strain, leg_steps)
                         rate = (step - steps_at_leg_start) / max(now - t_leg, 1e-9)
-                        eta = eta_est.update(now, frac)
+                        eta = eta_est.update(now, frac, step)
                         log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
                                  "  %.1f steps/s  leg ETA %s", step, leg_k + 1, len(legs),
                                  "fwd" if leg.direction > 0 else "rev", eng.gamma, obs["sigma"], obs["V2"],
@@ -367,17 +367,20 @@ class Run:
 class EtaEstimate:
     """Leg ETA from the recent rate of progress (the fraction of the leg done, measured in
     log sigma or log V2 for stress targets): approaching jamming, progress slows down, so the
-    rate over the last ~30 s is a better guide than the average since the leg began."""
+    rate over the last ~30 s is a better guide than the average since the leg began.  The
+    window also spans at least ``min_steps`` steps: with steps of 10 s or more (N = 10^6) a
+    30 s window sees a few steps, and sigma's own ups and downs swamp the trend."""
 
-    def __init__(self, window: float = 30.0):
-        self.window = window
-        self.hist: list[tuple[float, float]] = []
+    def __init__(self, window: float = 30.0, min_steps: int = 30):
+        self.window, self.min_steps = window, min_steps
+        self.hist: list[tuple[float, float, int]] = []
 
-    def update(self, now: float, frac: float) -> float:
-        self.hist.append((now, frac))
-        while len(self.hist) > 2 and now - self.hist[1][0] > self.window:
+    def update(self, now: float, frac: float, step: int = 0) -> float:
+        self.hist.append((now, frac, step))
+        while len(self.hist) > 2 and now - self.hist[1][0] > self.window \
+                and step - self.hist[1][2] >= self.min_steps:
             self.hist.pop(0)
-        t0, f0 = self.hist[0]
+        t0, f0, _ = self.hist[0]
         if now <= t0 or frac <= f0:
             return float("nan")
         return (1.0 - frac) * (now - t0) / (frac - f0)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import h5py
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.serial_only      # each test launches its own processes
@@ -239,3 +240,25 @@ def test_every_scene_in_runs_is_valid():
         with open(p) as f:
             scene = load_scene(f.read(), p)
         assert scene["protocol"]["leg"], p
+
+
+def test_eta_window_spans_enough_steps():
+    """The leg ETA uses at least 30 s and 30 steps of history: slow steps whose progress
+    goes up and down do not make it jump."""
+    from parflow.run import EtaEstimate
+    eta = EtaEstimate(window=30.0, min_steps=30)
+    # 15 s per step; progress 0.001 per step on average, alternating +0.003 / -0.001
+    frac, out = 0.0, []
+    for k in range(1, 200):
+        frac += 0.003 if k % 2 else -0.001
+        out.append(eta.update(15.0 * k, frac, k))
+    rate = 0.001 / 15.0
+    late = np.array(out[100:])
+    late = late[np.isfinite(late)]
+    expect = (1.0 - frac) / rate
+    assert late.size > 50 and np.all(np.abs(late[-10:] / expect - 1) < 0.2)
+    # a pure 30 s window would have swung between "done soon" and "never"
+    short = EtaEstimate(window=30.0, min_steps=0)
+    vals = [short.update(15.0 * k, f, k) for k, f in enumerate(np.cumsum(
+        [0.003 if k % 2 else -0.001 for k in range(1, 200)]), start=1)]
+    assert np.nanmax(vals[100:]) / np.nanmin(vals[100:]) > 2
