@@ -62,17 +62,9 @@ def mode_table(n_unit: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray, 
 
 def analyse_run(path: str, k: int = 3, progress=None) -> dict:
     """Mode table of every snapshot of the bonded run file ``path`` (arrays, one row each)."""
-    import h5py
-
     from .cell import cell_at, pair_geometry
-    from .io import load_group
-    if not os.path.isfile(path):
-        raise InputError(f"{path!r} does not exist")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(f"{path!r} is not an HDF5 run file: {exc}") from None
-    with f:
+    from .io import load_group, read_run
+    with read_run(path) as f:
         if "initial" not in f or "bonds" not in f["initial"]:
             raise InputError(f"{path!r} is not a run of a bonded model (chain, network): "
                              f"no initial/bonds")

@@ -80,14 +80,8 @@ def _min_image(d: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 def load_run_state(path: str, which: str = "checkpoint"):
     """(s, h0, gamma, radii, step) of a suspension run file's checkpoint or initial state."""
-    import h5py
-    if not os.path.isfile(path):
-        raise InputError(f"prepare: {path!r} does not exist")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(f"prepare: {path!r} is not an HDF5 run file: {exc}") from None
-    with f:
+    from .io import read_run
+    with read_run(path) as f:
         if "initial" not in f or "radii" not in f["initial"]:
             raise InputError(f"prepare: {path!r} is not a suspension run (no initial/radii)")
         h0 = f["initial/h0"][()]

@@ -44,12 +44,15 @@ class StopSignals:
         self.depth = 0
         self.pending = 0
 
-    def handle(self, code: int) -> None:
+    def _exception(self, code: int, mid_step: bool, collective: bool) -> BaseException:
         exc = self.CODES[code](f"signal {'SIGINT' if code == 1 else 'SIGTERM'}")
+        exc.mid_step, exc.collective = mid_step, collective
+        return exc
+
+    def handle(self, code: int) -> None:
         if self.depth == 0 or self.pending:
-            exc.mid_step, exc.collective = self.depth > 0, False
             self.pending = 0
-            raise exc
+            raise self._exception(code, mid_step=self.depth > 0, collective=False)
         self.pending = max(self.pending, code)
 
     @contextmanager
@@ -69,9 +72,7 @@ class StopSignals:
             code = comm.tompi4py().allreduce(code, op=MPI.MAX)
         if code:
             self.pending = 0
-            exc = self.CODES[code](f"signal {'SIGINT' if code == 1 else 'SIGTERM'}")
-            exc.mid_step, exc.collective = False, True
-            raise exc
+            raise self._exception(code, mid_step=False, collective=True)
 
 
 STOPS = StopSignals()
