@@ -22,7 +22,7 @@ import numpy as np
 
 from .integrate import Heun, Jammed, StepControl
 from .state import Bonds, InputError, State
-from .system import BondedSystem
+from .system import BondedSystem, resolve_reuse
 
 
 def _at(state: State, s: np.ndarray, gamma: float) -> State:
@@ -39,7 +39,10 @@ class BondedEngine:
         self.state, self.model = state, model
         self.control = StepControl(**scene["integrator"])
         self.control.validate()
-        self.system = BondedSystem(comm, state, scene["solver"]["preset"], scene["solver"]["parallel"])
+        sol = scene["solver"]
+        reuse = resolve_reuse(sol["reuse_factor"], len(state.bonds), sol["preset"],
+                              getattr(model, "FACTOR_REUSE", False))
+        self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
         self.integ = Heun(self.system, self.control)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
@@ -47,6 +50,9 @@ class BondedEngine:
             self.s, self.gamma, self.dg = state.s.copy(), state.gamma, self.control.initial_dgamma
         else:
             self.s, self.gamma, self.dg = ck["s"], ck["gamma"], ck["dgamma"]
+        # a checkpoint's rod forces: the restart continues from the very numbers the run had
+        # (a force solved with a reused factor differs from a fresh solve by round-off)
+        self._tau0 = None if ck is None else ck.get("tau")
         self.F = None
         self.res = None
 
@@ -55,11 +61,18 @@ class BondedEngine:
         return self.system.parallel
 
     def start(self):
-        self.F = self.system.evaluate(self.s, self.gamma, what="initial force")
+        tau0, self._tau0 = self._tau0, None
+        if tau0 is not None and np.shape(tau0) == (len(self.state.bonds),):
+            self.F = self.system.force_from_tau(self.s, self.gamma, tau0)
+        else:
+            self.F = self.system.evaluate(self.s, self.gamma, what="initial force")
         return self.F
 
     def describe(self) -> tuple[str, dict]:
-        return self.system.tau_solver.describe(), dict(self.system.tau_solver.resolved_options())
+        desc = self.system.tau_solver.describe()
+        if self.system.reuse_factor:
+            desc += ", step's last force by PCG on the predictor's factor"
+        return desc, dict(self.system.tau_solver.resolved_options())
 
     def size_text(self) -> str:
         return f"N = {self.state.n}, Nc = {len(self.state.bonds)}"
@@ -90,6 +103,7 @@ class BondedEngine:
 
     def omega_min(self) -> float:
         from .spectrum import LowSpectrum, omega_from_lambda
+        self.system.sync()
         if self._spec is None:
             # shift-and-invert at 0 on the force solver's factor of N (already up to date)
             self._spec = LowSpectrum(self.system.ops.N, k=self.n_eigs, parallel=self.system.parallel,
@@ -98,19 +112,22 @@ class BondedEngine:
         return float(omega_from_lambda(lam[:1])[0])
 
     def analyses(self) -> dict:
+        self.system.sync()
         return self.model.analyses(self.system, _at(self.state, self.s, self.gamma), self.F)
 
     def snapshot(self) -> dict:
         return dict(s=self.s, V_na=self.F.V_na, tau=self.F.tau)
 
     def checkpoint(self) -> tuple[dict, dict]:
-        return dict(s=self.s), dict(gamma=self.gamma, dgamma=self.dg)
+        return dict(s=self.s, tau=self.F.tau), dict(gamma=self.gamma, dgamma=self.dg)
 
     def on_jammed(self) -> None:
         self.system.load(self.F.n)      # the factor loaded last belongs to a rejected trial step
 
     def counters(self) -> dict:
-        return dict(n_factorisations=self.system.n_factor)
+        sysm = self.system
+        return dict(n_factorisations=sysm.n_factor, n_reused_factor=sysm.n_reused,
+                    n_reuse_failed=sysm.n_reuse_failed)
 
     def destroy(self) -> None:
         if self._spec is not None:

@@ -52,6 +52,7 @@ class RigidityOperators:
         it = PETSc.IntType
         self._i_all, self._j_all = i, j
         self._n, self._s_fresh = None, False
+        self.values_stale = False
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
         comp = np.arange(d)
@@ -100,13 +101,41 @@ class RigidityOperators:
         lazily (``S_at``): the step loop needs only N and the numpy form of S^T."""
         self._n = n
         self._s_fresh = False
+        self.values_stale = False
+        self.N.setValuesCSR(self._n_indptr, self._n_indices, self._values(n))
+        self.N.assemble()
+
+    def _values(self, n: np.ndarray) -> np.ndarray:
+        """Entries of the local rows of N for unit vectors n: c_ab n_a . n_b."""
         nT = n.T
         dots = nT[0][self._n_rows] * nT[0][self._n_cols]
         for c in range(1, self.d):
             dots += nT[c][self._n_rows] * nT[c][self._n_cols]
         dots *= self._n_coef
-        self.N.setValuesCSR(self._n_indptr, self._n_indices, dots)
-        self.N.assemble()
+        return dots
+
+    def set_unit_vectors(self, n: np.ndarray) -> None:
+        """Take n as the current unit vectors (for S^T) without writing N: the Mat keeps the
+        values (and the factor) of an earlier configuration -- ``values_stale`` says so."""
+        self._n = n
+        self._s_fresh = False
+        self.values_stale = True
+
+    def matvec_at(self, n: np.ndarray):
+        """x -> N(n) x for replicated x (Nc,), replicated out, with N built from the unit
+        vectors n in scipy CSR (the PETSc Mat is not touched)."""
+        import scipy.sparse as sp
+        A = sp.csr_matrix((self._values(n), self._n_indices, self._n_indptr),
+                          shape=(self.hi - self.lo, self.nc))
+        if self.comm.getSize() == 1:
+            return lambda x: A @ x
+        mpi = self.comm.tompi4py()
+
+        def mv(x):
+            out = np.empty(self.nc)
+            mpi.Allgatherv(np.ascontiguousarray(A @ x), [out, self._counts])
+            return out
+        return mv
 
     def S_at(self) -> PETSc.Mat:
         """S as a distributed PETSc Mat with the values of the last ``update``."""

@@ -12,6 +12,7 @@ import tomllib
 
 from .models import MODELS, get_model
 from .solvers import PARALLEL_FACTORS, PRESETS
+from .system import REUSE_FACTOR
 from .state import InputError
 
 DEFAULT_SCENE = """\
@@ -77,6 +78,7 @@ SCHEMA = {
     "solver": {
         "preset": (str, "direct", (lambda v: v in PRESETS, f"one of {sorted(PRESETS)}")),
         "parallel": (str, "auto", (lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}")),
+        "reuse_factor": (str, "auto", (lambda v: v in REUSE_FACTOR, f"one of {list(REUSE_FACTOR)}")),
     },
     "output": {
         "path": (str, "out/run.h5", (lambda v: len(v) > 0, "a non-empty path")),

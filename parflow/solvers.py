@@ -104,7 +104,8 @@ class SolveInfo:
     reason: int = 0
     residual: float = 0.0         # ||rhs - N x|| / ||rhs||
     backward_error: float = 0.0   # ||rhs - N x|| / (||N|| ||x|| + ||rhs||)
-    refinements: int = 0
+    refinements: int = 0          # iterative refinements; for a solve with a reused factor,
+                                  # the PCG iterations (BondedSystem.evaluate)
 
 
 class CholeskySolver:
@@ -165,6 +166,11 @@ class CholeskySolver:
                                        f"failed ({name}); N is singular to working precision")
             raise SolveError(f"{self.prefix}solve ({what}) did not converge: {name}")
         return reason
+
+    def apply(self, rhs: PETSc.Vec, x: PETSc.Vec, what: str = "") -> None:
+        """x = F^-1 rhs with the current factor F, nothing else (no residual check, no
+        refinement): the preconditioner of an outer iteration that checks its own residual."""
+        self._ksp_solve(rhs, x, what)
 
     def solve(self, rhs: PETSc.Vec, x: PETSc.Vec, what: str = "") -> SolveInfo:
         """x = A^-1 rhs with residual check and iterative refinement as the preset asks."""

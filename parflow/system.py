@@ -49,10 +49,32 @@ class Force:
         return self.V_na @ np.linalg.inv(self.h).T
 
 
+# A force solve with a reused factor (PCG on N(s), preconditioned by the factor of the N
+# loaded earlier in the step) is accepted at this backward error -- what the direct
+# solve reaches (4e-17 measured at Nc = 1.9e6, sigma = 1.4e4) -- within this many
+# iterations; otherwise N(s) is factorised (docs/solvers.md, "Reusing the factor").
+REUSE_BERR = 1e-16
+REUSE_MAX_IT = 25
+# solver.reuse_factor = "auto": on for models that ask for it (a 2D network's factor costs
+# ~20-30 solves at Nc = 1.9e6) from this many rows of N, and with the "direct" preset only
+REUSE_AUTO_MIN_NC = 250_000
+REUSE_FACTOR = ("auto", "on", "off")
+
+
+def resolve_reuse(reuse: str, n_rows: int, preset: str, model_allows: bool) -> bool:
+    """Whether the last force solve of a step reuses the step's factor (see evaluate)."""
+    if reuse not in REUSE_FACTOR:
+        raise ValueError(f"solver.reuse_factor must be one of {REUSE_FACTOR}, got {reuse!r}")
+    if reuse == "auto":
+        return model_allows and preset == "direct" and n_rows >= REUSE_AUTO_MIN_NC
+    return reuse == "on"
+
+
 class BondedSystem:
     """Operators and solvers for a state with persistent bonds (chain, network)."""
 
-    def __init__(self, comm, state: State, preset: str = "direct", parallel: str = "auto"):
+    def __init__(self, comm, state: State, preset: str = "direct", parallel: str = "auto",
+                 reuse_factor: bool = False):
         if state.bonds is None:
             raise ValueError("BondedSystem needs a state with bonds")
         state.bonds.validate(state.n)
@@ -71,6 +93,9 @@ class BondedSystem:
         self.proj_solver = self.tau_solver
         self._x = self.ops.tau.duplicate()   # solution of other solves with N
         self.n_factor = 0          # numeric (re)factorisations requested
+        self.reuse_factor = bool(reuse_factor)
+        self.n_reused = 0          # force solves done with a reused factor
+        self.n_reuse_failed = 0    # ... that fell back to a factorisation
 
     @property
     def omega(self) -> float:
@@ -87,20 +112,90 @@ class BondedSystem:
         self.ops.update(n)
         self.n_factor += 1
 
-    def evaluate(self, s: np.ndarray, gamma: float, what: str = "force") -> Force:
-        """Solve N tau = -b at configuration (s, gamma); leaves N loaded at (s, gamma)."""
+    def evaluate(self, s: np.ndarray, gamma: float, what: str = "force", reuse: bool = False) -> Force:
+        """Solve N tau = -b at configuration (s, gamma); leaves N loaded at (s, gamma) --
+        except with ``reuse`` (and reuse_factor on): then N(s) tau = -b is solved by PCG
+        preconditioned by the factor already loaded (a nearby configuration's, e.g. the
+        step's predictor), and the Mat keeps that configuration's values until ``sync()``.
+        If the PCG does not reach REUSE_BERR in REUSE_MAX_IT iterations, N(s) is factorised."""
         h, r, ell, n, b = self.geometry(s, gamma)
+        tau = None
+        if reuse and self.reuse_factor and self.n_factor > 0:
+            tau, info = self._solve_reused(n, -b, what)
+        if tau is None:
+            self.load(n)
+            ops = self.ops
+            ops.set_local(ops.rhs, -b)
+            info = self.tau_solver.solve(ops.rhs, ops.tau, what)
+            tau = ops.gather(ops.tau)
+        else:
+            self.ops.set_unit_vectors(n)
+        return self._force(gamma, h, r, ell, n, b, tau, info)
+
+    def force_from_tau(self, s: np.ndarray, gamma: float, tau: np.ndarray) -> Force:
+        """The Force at (s, gamma) for known rod forces tau (a restart from a checkpoint that
+        stored them: the same numbers as the run that wrote it, without a solve); N is
+        loaded at (s, gamma)."""
+        h, r, ell, n, b = self.geometry(s, gamma)
+        if tau.shape != b.shape:
+            raise ValueError(f"tau has {tau.shape} entries, the system {b.shape} rods")
         self.load(n)
-        ops = self.ops
-        ops.set_local(ops.rhs, -b)
-        info = self.tau_solver.solve(ops.rhs, ops.tau, what)
-        tau = ops.gather(ops.tau)
-        V_na = ops.ST_numpy(tau)
+        return self._force(gamma, h, r, ell, n, b, np.array(tau, dtype=float), SolveInfo())
+
+    def _force(self, gamma, h, r, ell, n, b, tau, info) -> Force:
+        V_na = self.ops.ST_numpy(tau)
         omega = self.omega
         sigma = float(np.einsum("id,id->", V_na, V_na)) / omega
         sigma_tb = -float(tau @ b) / omega
         pressure = float(tau @ ell) / (self.state.d * omega)
         return Force(gamma, h, r, ell, n, b, tau, V_na, sigma, sigma_tb, pressure, info)
+
+    def _solve_reused(self, n: np.ndarray, rhs: np.ndarray, what: str):
+        """PCG for N(n) x = rhs, preconditioned by the loaded factor; (x, SolveInfo) when the
+        backward error reaches REUSE_BERR, (None, None) otherwise.  The true residual is
+        recomputed every iteration (it is what the acceptance test looks at)."""
+        A = self.ops.matvec_at(n)
+        nb = float(np.linalg.norm(rhs))
+        norm_n = self.tau_solver.norm_bound
+        x = np.zeros_like(rhs)
+        r = rhs.copy()
+        z = self._apply(r, what)
+        p = z.copy()
+        rz = float(r @ z)
+        best = np.inf
+        for it in range(1, REUSE_MAX_IT + 1):
+            Ap = A(p)
+            pAp = float(p @ Ap)
+            if not (np.isfinite(pAp) and pAp > 0):
+                break
+            x += (rz / pAp) * p
+            r = rhs - A(x)
+            nr = float(np.linalg.norm(r))
+            berr = nr / (norm_n * float(np.linalg.norm(x)) + nb) if nb > 0 else 0.0
+            if berr <= REUSE_BERR:
+                self.n_reused += 1
+                return x, SolveInfo(0, nr / nb if nb > 0 else nr, berr, it)
+            if not np.isfinite(berr) or berr > 1e3 * best:
+                break                    # diverging (loss of orthogonality)
+            best = min(best, berr)
+            z = self._apply(r, what)
+            rz_new = float(r @ z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        self.n_reuse_failed += 1
+        return None, None
+
+    def _apply(self, r: np.ndarray, what: str) -> np.ndarray:
+        """The loaded factor applied to a replicated vector."""
+        self.ops.set_local(self.ops.rhs, r)
+        self.tau_solver.apply(self.ops.rhs, self._x, what + " (reused factor)")
+        return self.ops.gather(self._x)
+
+    def sync(self) -> None:
+        """Make the Mat hold N at the current configuration again (after a reused-factor
+        evaluate): solves that follow -- spectra, point responses -- need the exact N."""
+        if self.ops.values_stale:
+            self.load(self.ops._n)
 
     def solve_N(self, rhs: np.ndarray, solver: CholeskySolver | None = None, what="") -> np.ndarray:
         """x = N^-1 rhs with the currently loaded N (replicated in and out)."""

@@ -38,6 +38,9 @@ from . import network_build as _nb
 FLOW = "shear"
 Z_RANGE = (3.5, 3.98)
 DENSE_MAX = 10_000
+# the force solve at the end of a step may reuse the step's factor (solver.reuse_factor =
+# "auto" above system.REUSE_AUTO_MIN_NC rods): a 2D network's factor costs ~20-30 solves
+FACTOR_REUSE = True
 CORR_METHODS = ("auto", "exact", "fft")
 CORR_EXACT_MAX = 10_000    # nodes: above, corr_method = "auto" uses the FFT
 CORR_R_EXACT = 3.0         # a0: C(r) bins below it are exact in the FFT method (contact shells)
