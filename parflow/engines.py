@@ -43,7 +43,9 @@ class BondedEngine:
         reuse = resolve_reuse(sol["reuse_factor"], len(state.bonds), sol["preset"],
                               getattr(model, "FACTOR_REUSE", False))
         self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
-        self.integ = Heun(self.system, self.control)
+        err_prev = None if ck is None else ck.get("err_prev")
+        self.integ = Heun(self.system, self.control,
+                          err_prev=float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
         if ck is None:
@@ -119,7 +121,9 @@ class BondedEngine:
         return dict(s=self.s, V_na=self.F.V_na, tau=self.F.tau)
 
     def checkpoint(self) -> tuple[dict, dict]:
-        return dict(s=self.s, tau=self.F.tau), dict(gamma=self.gamma, dgamma=self.dg)
+        ep = self.integ.err_prev
+        return dict(s=self.s, tau=self.F.tau), dict(gamma=self.gamma, dgamma=self.dg,
+                                                    err_prev=float("nan") if ep is None else ep)
 
     def on_jammed(self) -> None:
         self.system.load(self.F.n)      # the factor loaded last belongs to a rejected trial step

@@ -14,8 +14,13 @@ Step (Heun, second order, first-same-as-last):
     the force at the projected point: a fresh factorisation, or (solver.reuse_factor) PCG
     preconditioned by the factor loaded last (the predictor's or the projection's Newton
     point's) -- one factorisation per step instead of two or three.
-    next dg = dg * clip(0.9 tol / err, 0.2, 2), bounded by max_dgamma and by the largest
-    non-affine displacement per step max_i |V_na,i| dg <= max_displacement.
+    next dg = dg * clip(0.9 tol / err, 0.2, 2) (controller "I"), or, controller "PI",
+    dg * clip((0.9 tol / err)^0.7 (err_prev / err)^0.4, 0.2, 2) with err_prev the error of
+    the previous accepted step (Gustafsson's PI control: it damps the accept/reject cycle
+    an "I" control falls into where the step is limited by stability rather than accuracy,
+    docs/networks.md) and no growth after a rejection.  Either is then bounded by
+    max_dgamma and by the largest non-affine displacement per step
+    max_i |V_na,i| dg <= max_displacement.
 A step whose factorisation or projection fails is rejected and retried 4x smaller; when dg
 falls below min_dgamma the system has jammed (:class:`Jammed`).
 """
@@ -26,6 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .solvers import SingularOperator
+
+
+CONTROLLERS = ("I", "PI")
 
 
 class Jammed(RuntimeError):
@@ -40,6 +48,7 @@ class StepControl:
     min_dgamma: float = 1e-14
     initial_dgamma: float = 1e-4
     length_tol: float = 1e-12
+    controller: str = "I"
 
     def validate(self):
         from .state import InputError
@@ -48,6 +57,8 @@ class StepControl:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"integrator.{name} must be a positive number, got {v!r}")
+        if self.controller not in CONTROLLERS:
+            raise InputError(f"integrator.controller must be one of {CONTROLLERS}, got {self.controller!r}")
         if self.min_dgamma >= self.max_dgamma:
             raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
 
@@ -70,9 +81,22 @@ def _norm(V):
 
 
 class Heun:
-    def __init__(self, system, control: StepControl):
+    def __init__(self, system, control: StepControl, err_prev: float | None = None):
         self.system = system
         self.c = control
+        self.err_prev = err_prev     # error of the last accepted step (PI control; checkpointed)
+
+    def growth(self, err: float, rejected: int) -> float:
+        """Factor for the next step after an accepted one with error ``err``."""
+        c = self.c
+        if err == 0:
+            g = 2.0
+        elif c.controller == "PI" and self.err_prev:
+            g = (0.9 * c.tol / err) ** 0.7 * (self.err_prev / err) ** 0.4
+        else:
+            g = 0.9 * c.tol / err
+        g = min(2.0, max(0.2, g))
+        return min(g, 1.0) if rejected and c.controller == "PI" else g
 
     def bound(self, F, dg: float) -> float:
         vmax = float(np.sqrt(np.max(np.einsum("id,id->i", F.V_na, F.V_na)))) if F.V_na.size else 0.0
@@ -115,5 +139,6 @@ class Heun:
                 rejected += 1
                 dg *= 0.25
                 continue
-            grow = 2.0 if err == 0 else min(2.0, max(0.2, 0.9 * c.tol / err))
+            grow = self.growth(err, rejected)
+            self.err_prev = err
             return StepResult(s_new, gamma + h, F, h, dg * grow, err, rejected, it, lerr)

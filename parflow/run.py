@@ -167,14 +167,16 @@ class Run:
                              solver=solver_desc, parallel=eng.parallel, versions=versions(), n_ranks=comm.getSize(),
                              git_commit=git_commit(), created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                              status="running", message="", model=scene["model"]["name"],
-                             engine=eng.kind)
+                             engine=eng.kind, scene_settings="\n".join(scene.get("settings", [])))
                 writer.create(attrs, {"initial": (state_groups(state), {}),
                                       "model": ({}, {k: v for k, v in state.meta.items()
                                                      if isinstance(v, (int, float, str))})})
             else:
                 writer.reopen(ck["n_rows"], ck["step"])
                 writer.set_attrs(status="running", restarted_at_step=step,
-                                 restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+                                 restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                                 restart_git_commit=git_commit(),
+                                 scene_settings="\n".join(scene.get("settings", [])))
         log.info("%s: %s, %s, %d rank(s) (%s), solver %s%s", scene["model"]["name"],
                  scene["title"] or "untitled", eng.size_text(), comm.getSize(),
                  eng.parallel, solver_desc, f", restarting at step {step}" if ck else "")

@@ -10,6 +10,7 @@ import difflib
 import math
 import tomllib
 
+from .integrate import CONTROLLERS
 from .models import MODELS, get_model
 from .solvers import PARALLEL_FACTORS, PRESETS
 from .system import REUSE_FACTOR
@@ -64,6 +65,7 @@ SCHEMA = {
         "min_dgamma": (float, 1e-14, _POS),
         "initial_dgamma": (float, 1e-4, _POS),
         "length_tol": (float, 1e-12, _POS),
+        "controller": (str, "I", (lambda v: v in CONTROLLERS, f"one of {list(CONTROLLERS)}")),
     },
     "observables": {
         "omega_min_every": (int, 0, _NONNEG),
@@ -221,6 +223,48 @@ def _legs(legs) -> list:
             raise InputError(f"{where[:-1]} has no stop rule: give one of {', '.join(STOP_KEYS)}")
         out.append(leg)
     return out
+
+
+# what --set may change when a run is restarted: how it is integrated, solved and written,
+# not what is simulated
+RESTART_SETTABLE = ("integrator", "solver", "output")
+
+
+def apply_settings(scene: dict, settings: list[str], restart: bool = False) -> dict:
+    """A copy of ``scene`` with ``SECTION.KEY=VALUE`` settings applied (``--set``), each
+    validated as if it were in the scene file (VALUE is read as TOML, else as a string).
+    On a restart only the sections of RESTART_SETTABLE can change (and not output.path)."""
+    scene = copy.deepcopy(scene)
+    for item in settings:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not name:
+            raise InputError(f"--set {item!r}: write SECTION.KEY=VALUE, e.g. integrator.controller=PI")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        if restart and (section not in RESTART_SETTABLE or (section, name) == ("output", "path")):
+            raise InputError(f"--set {key}: a restart continues the same simulation; it can "
+                             f"change {', '.join(s + '.*' for s in RESTART_SETTABLE)} "
+                             f"(not output.path)")
+        if section in ("model", "petsc"):
+            raise InputError(f"--set {key}: [{section}] is not settable from the command line: "
+                             f"edit the scene file" + (" (PETSc options: -name value)" if section == "petsc" else ""))
+        if section not in SCHEMA or section == "":
+            raise _unknown(section, [s for s in SECTIONS if s in SCHEMA], "--set section ")
+        if section == "integrator" and name == "preset":
+            raise InputError("--set integrator.preset: set the preset's keys instead "
+                             "(integrator.tol, integrator.max_displacement)")
+        where = f"{section}."
+        if name not in SCHEMA[section]:
+            raise _unknown(name, SCHEMA[section], where)
+        scene[section] = _fill({**scene[section], name: value}, SCHEMA[section], where)
+    integ = scene["integrator"]
+    if integ["min_dgamma"] >= integ["max_dgamma"]:
+        raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
+    scene["settings"] = list(scene.get("settings", [])) + list(settings)
+    return scene
 
 
 def with_overrides(scene: dict, output: str | None = None) -> dict:

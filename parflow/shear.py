@@ -11,7 +11,7 @@ import sys
 
 from .cli import cmdline_option_names, collective, init_petsc, run_main, split_petsc_args
 
-USAGE_FLAGS = {"--output", "--restart", "--max-steps"}
+USAGE_FLAGS = {"--output", "--restart", "--max-steps", "--set"}
 
 
 def parser() -> argparse.ArgumentParser:
@@ -26,6 +26,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--restart", metavar="FILE", help="continue the run saved in FILE from its checkpoint")
     p.add_argument("--max-steps", type=int, help="override protocol.max_steps (e.g. to extend a restarted run)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="change a scene setting (repeatable), e.g. --set integrator.controller=PI; "
+                        "with --restart: [integrator], [solver] and [output] keys only; the file "
+                        "records every setting and a later restart applies them again")
     p.add_argument("--no-plots", action="store_true", help="do not draw the figures at the end")
     p.add_argument("--print-scene", action="store_true", help="print the default scene and exit")
     return p
@@ -59,7 +63,8 @@ def _restart_scene(path):
         if "checkpoint" not in f:
             from .state import InputError
             raise InputError(f"{path!r} has no checkpoint: it cannot be restarted")
-        return str(f.attrs["scene"])
+        settings = str(f.attrs.get("scene_settings", ""))
+        return str(f.attrs["scene"]), [s for s in settings.split("\n") if s]
     finally:
         f.close()
 
@@ -67,7 +72,7 @@ def _restart_scene(path):
 def _run(args, petsc_args, PETSc) -> int:
     from .io import check_output_path
     from .run import Run, setup_logging
-    from .scene import DEFAULT_SCENE, load_scene, with_overrides
+    from .scene import DEFAULT_SCENE, apply_settings, load_scene, with_overrides
     from .solvers import insert_options
     from .state import InputError
 
@@ -77,15 +82,17 @@ def _run(args, petsc_args, PETSc) -> int:
         if args.scene or args.output:
             raise InputError("--restart FILE takes the scene and output from FILE: "
                              "do not give a scene or --output with it")
-        text = collective(comm, _restart_scene, args.restart)
+        text, before = collective(comm, _restart_scene, args.restart)
         scene = load_scene(text, args.restart)
+        scene = apply_settings(scene, before, restart=True)      # settings of earlier restarts
+        scene = apply_settings(scene, args.set, restart=True)
         path = args.restart
     else:
         if args.scene:
             text, source = collective(comm, _read, args.scene), args.scene
         else:
             text, source = DEFAULT_SCENE, "<default scene>"
-        scene = with_overrides(load_scene(text, source), args.output)
+        scene = apply_settings(with_overrides(load_scene(text, source), args.output), args.set)
         path = scene["output"]["path"]
         collective(comm, check_output_path, path, args.overwrite)
     if args.max_steps is not None and args.max_steps <= 0:
