@@ -230,11 +230,14 @@ def _legs(legs) -> list:
 RESTART_SETTABLE = ("integrator", "solver", "output")
 
 
-def apply_settings(scene: dict, settings: list[str], restart: bool = False) -> dict:
+def apply_settings(scene: dict, settings: list[str], restart: bool = False, branch: bool = False) -> dict:
     """A copy of ``scene`` with ``SECTION.KEY=VALUE`` settings applied (``--set``), each
     validated as if it were in the scene file (VALUE is read as TOML, else as a string).
-    On a restart only the sections of RESTART_SETTABLE can change (and not output.path)."""
+    A leg's stop rule is ``protocol.leg.K.KEY=VALUE`` (K from 0).  On a restart only the
+    sections of RESTART_SETTABLE can change (and not output.path); a branch (a restart into
+    a new file) may also change the protocol."""
     scene = copy.deepcopy(scene)
+    settable = RESTART_SETTABLE + (("protocol",) if branch else ())
     for item in settings:
         key, sep, text = item.partition("=")
         section, dot, name = key.strip().partition(".")
@@ -244,10 +247,14 @@ def apply_settings(scene: dict, settings: list[str], restart: bool = False) -> d
             value = tomllib.loads(f"v = {text.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             value = text.strip()
-        if restart and (section not in RESTART_SETTABLE or (section, name) == ("output", "path")):
+        if restart and (section not in settable or (section, name) == ("output", "path")):
             raise InputError(f"--set {key}: a restart continues the same simulation; it can "
-                             f"change {', '.join(s + '.*' for s in RESTART_SETTABLE)} "
-                             f"(not output.path)")
+                             f"change {', '.join(s + '.*' for s in settable)} "
+                             f"(not output.path)" + ("" if branch else "; to change the protocol, "
+                                                      "branch the run into a new file (--output)"))
+        if section == "protocol" and name.startswith("leg."):
+            _set_leg(scene, key.strip(), name, value)
+            continue
         if section in ("model", "petsc"):
             raise InputError(f"--set {key}: [{section}] is not settable from the command line: "
                              f"edit the scene file" + (" (PETSc options: -name value)" if section == "petsc" else ""))
@@ -265,6 +272,19 @@ def apply_settings(scene: dict, settings: list[str], restart: bool = False) -> d
         raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
     scene["settings"] = list(scene.get("settings", [])) + list(settings)
     return scene
+
+
+def _set_leg(scene: dict, key: str, name: str, value) -> None:
+    """protocol.leg.K.KEY=VALUE: one key of leg K, validated like the scene's legs."""
+    parts = name.split(".")
+    legs = scene["protocol"]["leg"]
+    if len(parts) != 3 or not parts[1].isdigit() or int(parts[1]) >= len(legs):
+        raise InputError(f"--set {key}: write protocol.leg.K.KEY=VALUE with K in 0..{len(legs) - 1}")
+    k, leg_key = int(parts[1]), parts[2]
+    where = f"protocol.leg[{k}]."
+    if leg_key not in LEG:
+        raise _unknown(leg_key, LEG, where)
+    legs[k] = _fill({**legs[k], leg_key: value}, LEG, where)
 
 
 def with_overrides(scene: dict, output: str | None = None) -> dict:

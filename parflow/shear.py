@@ -7,6 +7,7 @@ overrides the scene's [petsc] table (e.g. ``-tau_pc_factor_mat_solver_type mumps
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from .cli import cmdline_option_names, collective, init_petsc, run_main, split_petsc_args
@@ -24,7 +25,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--output", help="output HDF5 file (default: the scene's output.path)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--quiet", action="store_true", help="no progress line")
-    p.add_argument("--restart", metavar="FILE", help="continue the run saved in FILE from its checkpoint")
+    p.add_argument("--restart", metavar="FILE", help="continue the run saved in FILE from its checkpoint "
+                   "(with --output NEW: branch it, continuing a copy in NEW; FILE is left as it is, "
+                   "and --set may then change the protocol, e.g. --set protocol.leg.0.sigma_above=3e4)")
     p.add_argument("--max-steps", type=int, help="override protocol.max_steps (e.g. to extend a restarted run)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="change a scene setting (repeatable), e.g. --set integrator.controller=PI; "
@@ -56,6 +59,26 @@ def _read(path):
         raise InputError(f"cannot read scene file {path!r}: {exc.strerror}") from None
 
 
+def _branch(src: str, dst: str, overwrite: bool) -> int:
+    """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint)."""
+    import shutil
+
+    from .io import check_output_path
+    from .state import InputError
+    if os.path.abspath(src) == os.path.abspath(dst):
+        raise InputError("--output names the file being restarted: to continue the run itself, "
+                         "drop --output; to branch it, give a new file")
+    check_output_path(dst, overwrite)
+    tmp = dst + ".tmp"
+    shutil.copyfile(src, tmp)
+    import h5py
+    with h5py.File(tmp, "a") as f:
+        step = int(f["checkpoint"].attrs["step"])
+        f.attrs["branched_from"] = f"{os.path.abspath(src)} at step {step}"
+    os.replace(tmp, dst)
+    return step
+
+
 def _restart_scene(path):
     from .io import read_run
     f = read_run(path)
@@ -79,14 +102,20 @@ def _run(args, petsc_args, PETSc) -> int:
     comm = PETSc.COMM_WORLD
     setup_logging(comm, args.quiet)
     if args.restart:
-        if args.scene or args.output:
-            raise InputError("--restart FILE takes the scene and output from FILE: "
-                             "do not give a scene or --output with it")
+        if args.scene:
+            raise InputError("--restart FILE takes the scene from FILE: do not give a scene with it")
         text, before = collective(comm, _restart_scene, args.restart)
         scene = load_scene(text, args.restart)
-        scene = apply_settings(scene, before, restart=True)      # settings of earlier restarts
-        scene = apply_settings(scene, args.set, restart=True)
+        scene = apply_settings(scene, before, restart=True, branch=True)   # settings of earlier restarts
+        branch = bool(args.output)
+        scene = apply_settings(scene, args.set, restart=True, branch=branch)
         path = args.restart
+        if branch:       # continue a copy of the run in another file; FILE is left as it is
+            step = collective(comm, _branch, args.restart, args.output, args.overwrite)
+            path = args.output
+            import logging
+            logging.getLogger("parflow").info("branching %s at its checkpoint (step %d) into %s",
+                                              args.restart, step, path)
     else:
         if args.scene:
             text, source = collective(comm, _read, args.scene), args.scene

@@ -120,3 +120,39 @@ def test_restart_with_set_is_recorded_and_kept(tmp_path):
         assert f["timeseries/step"][-1] == 90
     res = shear("--restart", out, "--set", "model.z=3.9")
     assert res.returncode != 0 and "continues the same simulation" in res.stderr
+
+
+@pytest.mark.serial_only
+def test_branch_a_run_into_a_new_file(tmp_path):
+    """--restart FILE --output NEW: a copy continues in NEW, here reversed at once by a lower
+    stop stress for the forward leg; FILE is left untouched; a plain restart cannot change
+    the protocol."""
+    from test_cli import shear
+    out, new = tmp_path / "r.h5", tmp_path / "b.h5"
+    scene = tmp_path / "s.toml"
+    scene.write_text(NET.format(controller="I", path=out))
+    assert shear(scene, "--quiet", "--no-plots", "--max-steps", "40").returncode == 0
+    with h5py.File(out) as f:
+        sigma_now = float(f["timeseries/sigma"][-1])
+        rows, ck = f["timeseries/step"].shape[0], int(f["checkpoint"].attrs["step"])
+    res = shear("--restart", out, "--quiet", "--no-plots", "--set", "protocol.leg.0.sigma_above=1")
+    assert res.returncode == 2 and "branch the run into a new file" in res.stderr
+    res = shear("--restart", out, "--output", new, "--no-plots", "--max-steps", "100000",
+                "--set", f"protocol.leg.0.sigma_above={0.5 * sigma_now}")
+    assert res.returncode == 0, res.stderr
+    assert f"at its checkpoint (step {ck})" in res.stderr
+    with h5py.File(out) as f:                      # the original: as it was
+        assert f["timeseries/step"].shape[0] == rows and f.attrs["status"] == "budget"
+    with h5py.File(new) as f:
+        assert f.attrs["branched_from"].endswith(f"at step {ck}")
+        assert f.attrs["status"] == "complete"
+        d = f["timeseries/direction"][()]
+        assert np.all(d[:rows] > 0) and np.all(d[rows:] < 0)        # reversed right away
+        assert f["timeseries/sigma"][-1] <= 30
+        assert f.attrs["scene_settings"] == f"protocol.leg.0.sigma_above={0.5 * sigma_now}"
+    res = shear("--restart", out, "--output", new, "--no-plots")
+    assert res.returncode == 2 and "exists" in res.stderr
+    res = shear("--restart", out, "--output", out, "--no-plots")
+    assert res.returncode == 2 and "names the file being restarted" in res.stderr
+    res = shear("--restart", out, "--output", tmp_path / "c.h5", "--set", "protocol.leg.5.strain=1")
+    assert res.returncode == 2 and "K in 0..1" in res.stderr and not (tmp_path / "c.h5").exists()
