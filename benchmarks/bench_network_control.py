@@ -69,9 +69,7 @@ def run(tmp, n, network, tol, controller):
 
 
 def crossing(d, level):
-    g, ls = d["gamma"], np.log(d["sigma"])
-    k = int(np.argmax(ls >= np.log(level)))
-    return float(g[k - 1] + (np.log(level) - ls[k - 1]) * (g[k] - g[k - 1]) / (ls[k] - ls[k - 1]))
+    return results.crossing(d["gamma"], d["sigma"], level)
 
 
 def compare(d, ref):

@@ -84,9 +84,7 @@ def run(folder, n, network, preset, reuse):
 
 def crossing(d, level=1e6):
     fw = d["direction"] > 0
-    g, ls = d["gamma"][fw], np.log(d["sigma"][fw])
-    k = int(np.argmax(ls >= np.log(level)))
-    return float(g[k - 1] + (np.log(level) - ls[k - 1]) * (g[k] - g[k - 1]) / (ls[k] - ls[k - 1]))
+    return results.crossing(d["gamma"][fw], d["sigma"][fw], level)
 
 
 def main():

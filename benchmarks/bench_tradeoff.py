@@ -83,9 +83,7 @@ def crossing(d, level=1e6):
     """gamma where <V^2> crosses ``level`` on the forward branch (log-linear interpolation
     between the two steps around it), independent of where the last step happened to land."""
     fw = d["direction"] >= 0
-    g, v = d["gamma"][fw], np.log(d["V2"][fw])
-    k = int(np.argmax(v >= np.log(level)))
-    return float(g[k - 1] + (np.log(level) - v[k - 1]) * (g[k] - g[k - 1]) / (v[k] - v[k - 1]))
+    return results.crossing(d["gamma"][fw], d["V2"][fw], level)
 
 
 def compare(d, ref):

@@ -20,3 +20,12 @@ def write(name: str, data: dict) -> str:
         fh.write("\n")
     os.replace(out + ".tmp", out)
     return out
+
+
+def crossing(gamma, y, level: float) -> float:
+    """gamma where y first reaches ``level`` (log-linear interpolation between the two steps
+    around it), independent of where the last step happened to land."""
+    import numpy as np
+    ly = np.log(np.asarray(y, dtype=float))
+    k = int(np.argmax(ly >= np.log(level)))
+    return float(gamma[k - 1] + (np.log(level) - ly[k - 1]) * (gamma[k] - gamma[k - 1]) / (ly[k] - ly[k - 1]))
