@@ -106,7 +106,7 @@ def _run(args, petsc_args, PETSc) -> int:
             raise InputError("--restart FILE takes the scene from FILE: do not give a scene with it")
         text, before = collective(comm, _restart_scene, args.restart)
         scene = load_scene(text, args.restart)
-        scene = apply_settings(scene, before, restart=True, branch=True)   # settings of earlier restarts
+        scene = apply_settings(scene, before)    # the file's own settings, checked when they were given
         branch = bool(args.output)
         scene = apply_settings(scene, args.set, restart=True, branch=branch)
         path = args.restart

@@ -105,18 +105,18 @@ def test_restart_with_set_is_recorded_and_kept(tmp_path):
     out = tmp_path / "r.h5"
     scene = tmp_path / "s.toml"
     scene.write_text(NET.format(controller="I", path=out))
-    res = shear(scene, "--quiet", "--no-plots", "--max-steps", "30")
+    res = shear(scene, "--quiet", "--no-plots", "--max-steps", "30", "--set", f"output.path={out}")
     assert res.returncode == 0, res.stderr
     res = shear("--restart", out, "--quiet", "--no-plots", "--max-steps", "60",
                 "--set", "integrator.controller=PI")
     assert res.returncode == 0, res.stderr
     with h5py.File(out) as f:
-        assert f.attrs["scene_settings"] == "integrator.controller=PI"
+        assert f.attrs["scene_settings"] == f"output.path={out}\nintegrator.controller=PI"
         assert f.attrs["restarted_at_step"] == 30 and "restart_git_commit" in f.attrs
     res = shear("--restart", out, "--quiet", "--no-plots", "--max-steps", "90")
     assert res.returncode == 0, res.stderr
     with h5py.File(out) as f:
-        assert f.attrs["scene_settings"] == "integrator.controller=PI"   # still in force
+        assert f.attrs["scene_settings"] == f"output.path={out}\nintegrator.controller=PI"   # kept
         assert f["timeseries/step"][-1] == 90
     res = shear("--restart", out, "--set", "model.z=3.9")
     assert res.returncode != 0 and "continues the same simulation" in res.stderr
