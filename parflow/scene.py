@@ -10,7 +10,7 @@ import difflib
 import math
 import tomllib
 
-from .integrate import CONTROLLERS
+from .integrate import CONTROLLERS, StepControl
 from .models import MODELS, get_model
 from .solvers import PARALLEL_FACTORS, PRESETS
 from .system import REUSE_FACTOR
@@ -177,9 +177,7 @@ def load_scene(text: str, source: str = "<scene>") -> dict:
         else:
             scene[section] = _fill(table, SCHEMA[section], f"{section}.")
     scene["protocol"]["leg"] = _legs(raw.get("protocol", {}).get("leg"))
-    integ = scene["integrator"]
-    if integ["min_dgamma"] >= integ["max_dgamma"]:
-        raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
+    StepControl(**scene["integrator"]).validate()      # the integrator's own cross-checks
     scene["text"] = text
     return scene
 
@@ -267,9 +265,7 @@ def apply_settings(scene: dict, settings: list[str], restart: bool = False, bran
         if name not in SCHEMA[section]:
             raise _unknown(name, SCHEMA[section], where)
         scene[section] = _fill({**scene[section], name: value}, SCHEMA[section], where)
-    integ = scene["integrator"]
-    if integ["min_dgamma"] >= integ["max_dgamma"]:
-        raise InputError("integrator.min_dgamma must be smaller than integrator.max_dgamma")
+    StepControl(**scene["integrator"]).validate()      # the integrator's own cross-checks
     scene["settings"] = list(scene.get("settings", [])) + list(settings)
     return scene
 
