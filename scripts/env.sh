@@ -6,38 +6,48 @@
 # POSIX sh, safe under `set -eu`.  Values the user already exported win, except that
 # PETSC_DIR / SLEPC_DIR are replaced when they do not hold petsc4py / slepc4py.
 
-# Newest directory matching a glob pattern (version-aware sort), or nothing.
+# Where Debian puts PETSc and SLEPc.  Overridable (tests point them at an empty folder to
+# play a machine where nothing is installed yet).
+_parflow_petsc_root="${PARFLOW_PETSC_ROOT:-/usr/lib/petscdir}"
+_parflow_slepc_root="${PARFLOW_SLEPC_ROOT:-/usr/lib/slepcdir}"
+
+# Newest directory matching a glob pattern (version-aware sort), or nothing.  Must succeed
+# under `set -euo pipefail` when nothing matches (a fresh machine): no `ls` of a missing
+# glob, and every command in the pipeline exits 0.
 _parflow_newest() {
     # shellcheck disable=SC2086  # the pattern must glob
-    ls -d $1 2>/dev/null | sort -V | tail -n 1
+    for _parflow_d in $1; do
+        if [ -d "$_parflow_d" ]; then printf '%s\n' "$_parflow_d"; fi
+    done | sort -V | tail -n 1
 }
 
 # Debian ships petsc4py/slepc4py under $PETSC_DIR/lib/python3/dist-packages and finds
 # them through a .pth file that reads PETSC_DIR (falling back to the /usr/lib/petsc
 # alternatives symlink, which is not always present).  So PETSC_DIR must be set.
 if [ -z "${PETSC_DIR:-}" ] || [ ! -d "${PETSC_DIR}/lib/python3/dist-packages/petsc4py" ]; then
-    PETSC_DIR=$(_parflow_newest '/usr/lib/petscdir/petsc*/*-real')
+    PETSC_DIR=$(_parflow_newest "${_parflow_petsc_root}/petsc*/*-real")
 fi
 if [ -z "${SLEPC_DIR:-}" ] || [ ! -d "${SLEPC_DIR}/lib/python3/dist-packages/slepc4py" ]; then
     SLEPC_DIR=""
-    if [ -n "${PETSC_DIR}" ]; then
+    if [ -n "${PETSC_DIR:-}" ]; then
         # Prefer the SLEPc that matches the PETSc version and arch (petsc3.18/x -> slepc3.18/x).
         _parflow_v=$(basename "$(dirname "${PETSC_DIR}")" | sed 's/^petsc//')
         _parflow_a=$(basename "${PETSC_DIR}")
-        if [ -d "/usr/lib/slepcdir/slepc${_parflow_v}/${_parflow_a}" ]; then
-            SLEPC_DIR="/usr/lib/slepcdir/slepc${_parflow_v}/${_parflow_a}"
+        if [ -d "${_parflow_slepc_root}/slepc${_parflow_v}/${_parflow_a}" ]; then
+            SLEPC_DIR="${_parflow_slepc_root}/slepc${_parflow_v}/${_parflow_a}"
         fi
         unset _parflow_v _parflow_a
     fi
     if [ -z "${SLEPC_DIR}" ]; then
-        SLEPC_DIR=$(_parflow_newest '/usr/lib/slepcdir/slepc*/*-real')
+        SLEPC_DIR=$(_parflow_newest "${_parflow_slepc_root}/slepc*/*-real")
     fi
 fi
 unset -f _parflow_newest
+unset _parflow_petsc_root _parflow_slepc_root
 # Empty on a machine where PETSc is not installed yet (scripts/setup.sh installs it
 # and sources this file again).
-if [ -n "${PETSC_DIR}" ]; then export PETSC_DIR; else unset PETSC_DIR; fi
-if [ -n "${SLEPC_DIR}" ]; then export SLEPC_DIR; else unset SLEPC_DIR; fi
+if [ -n "${PETSC_DIR:-}" ]; then export PETSC_DIR; else unset PETSC_DIR; fi
+if [ -n "${SLEPC_DIR:-}" ]; then export SLEPC_DIR; else unset SLEPC_DIR; fi
 
 # Open MPI: allow root (containers, CI) and more ranks than cores.
 export OMPI_ALLOW_RUN_AS_ROOT=1

@@ -9,6 +9,8 @@
 #
 # Usage: bash scripts/setup.sh      (or: make setup)
 #        PARFLOW_FORCE_APT=1 bash scripts/setup.sh   to run the apt step even if not needed
+#        PARFLOW_SETUP_DRY_RUN=1 bash scripts/setup.sh   print what the apt step would run and
+#                                                         stop there (exit 0; nothing installed)
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -51,6 +53,10 @@ if [ "${PARFLOW_FORCE_APT:-0}" != 1 ] && system_ready; then
     log "system packages present (PETSC_DIR=$PETSC_DIR), skipping apt"
 else
     log "installing system packages with apt: ${APT_PACKAGES[*]}"
+    if [ "${PARFLOW_SETUP_DRY_RUN:-0}" = 1 ]; then
+        log "dry run: would run apt-get update && apt-get install -y ${APT_PACKAGES[*]}"
+        exit 0
+    fi
     SUDO=()
     if [ "$(id -u)" -ne 0 ]; then
         command -v sudo >/dev/null 2>&1 || die "not root and no sudo: install ${APT_PACKAGES[*]} by hand"
