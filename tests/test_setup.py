@@ -1,0 +1,82 @@
+"""The newcomer path: scripts/env.sh and scripts/setup.sh on a machine where nothing is
+installed yet.  CI runs where PETSc is already installed, so it cannot see that path; these
+tests play the fresh machine by pointing the PETSc/SLEPc search roots at empty folders."""
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.serial_only      # shells out; nothing MPI about it
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _env(tmp_path, petsc_root=None, slepc_root=None, **extra):
+    """The environment of a fresh shell: no PETSc/SLEPc variables, search roots given."""
+    empty = tmp_path / "empty"
+    empty.mkdir(exist_ok=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("PETSC_DIR", "SLEPC_DIR")}
+    env["PARFLOW_PETSC_ROOT"] = str(petsc_root or empty)
+    env["PARFLOW_SLEPC_ROOT"] = str(slepc_root or empty)
+    env.update(extra)
+    return env
+
+
+def _source(shell_cmd, env):
+    script = shell_cmd + ' -c \'. scripts/env.sh; echo "PETSC_DIR=${PETSC_DIR-<unset>}"; ' \
+                         'echo "SLEPC_DIR=${SLEPC_DIR-<unset>}"\''
+    return subprocess.run(script, shell=True, cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=30)
+
+
+@pytest.mark.parametrize("shell", ["bash -euo pipefail", "sh -eu"])
+def test_env_sh_on_a_machine_without_petsc(tmp_path, shell):
+    """The bug a fresh machine hit: `ls` of a glob that matched nothing exited 2 and, under
+    `set -euo pipefail`, killed setup.sh before apt ever ran."""
+    res = _source(shell, _env(tmp_path))
+    assert res.returncode == 0, res.stderr
+    assert "PETSC_DIR=<unset>" in res.stdout and "SLEPC_DIR=<unset>" in res.stdout, res.stdout
+
+
+def test_env_sh_picks_the_newest_petsc_and_its_slepc(tmp_path):
+    petsc, slepc = tmp_path / "petscdir", tmp_path / "slepcdir"
+    for d in ("petsc3.9/x86_64-linux-gnu-real", "petsc3.18/x86_64-linux-gnu-real",
+              "petsc3.18/x86_64-linux-gnu-complex"):
+        (petsc / d).mkdir(parents=True)
+    for d in ("slepc3.18/x86_64-linux-gnu-real", "slepc3.19/x86_64-linux-gnu-real"):
+        (slepc / d).mkdir(parents=True)
+    res = _source("bash -euo pipefail", _env(tmp_path, petsc, slepc))
+    assert res.returncode == 0, res.stderr
+    # version-aware: 3.18 > 3.9; the SLEPc of the same version and arch, not the newest one
+    assert f"PETSC_DIR={petsc}/petsc3.18/x86_64-linux-gnu-real" in res.stdout, res.stdout
+    assert f"SLEPC_DIR={slepc}/slepc3.18/x86_64-linux-gnu-real" in res.stdout, res.stdout
+
+
+def test_setup_reaches_apt_on_a_machine_without_petsc(tmp_path):
+    """setup.sh under `set -euo pipefail` gets as far as the apt step (dry run: nothing is
+    installed) when none of the system packages is there."""
+    env = _env(tmp_path, PARFLOW_SETUP_DRY_RUN="1")
+    res = subprocess.run(["bash", "scripts/setup.sh"], cwd=REPO, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "dry run: would run apt-get update && apt-get install -y" in res.stdout, res.stdout
+    assert "python3-petsc4py" in res.stdout and "openmpi-bin" in res.stdout
+
+
+def test_ci_entry_point_runs_the_readme_test_command():
+    """.ci/run calls `make test`, and `make test` fails on pytest's exit 5 (no tests)."""
+    ci = (REPO / ".ci" / "run").read_text()
+    assert "make test" in ci and "set -euo pipefail" in ci
+    readme = (REPO / "README.md").read_text()
+    assert "make test" in readme and "make run" in readme
+    res = subprocess.run(["make", "-n", "test"], cwd=REPO, capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "pytest" in res.stdout and "mpirun" in res.stdout
+    # a selection that matches no test is pytest's exit 5: make must fail on it, not pass
+    res = subprocess.run(["make", "--no-print-directory", "test-serial",
+                          "PYTEST_ARGS=tests/test_setup.py -k no_such_test_anywhere"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode != 0, res.stdout
+    assert "deselected" in res.stdout, res.stdout
