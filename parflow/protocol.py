@@ -1,0 +1,249 @@
+"""The schedule of a run as data: the clock, and triggers that say when an action is due.
+
+A run is one engine stepping the strain plus a list of ``(trigger, action)`` pairs
+(:mod:`parflow.run`).  After every accepted step the loop asks each trigger whether its
+action is due at the current :class:`Clock`.  A trigger that has memory (the last strain mark,
+the last decade, the last wall time) keeps it in itself; what a restart must resume goes into
+the checkpoint through :meth:`Trigger.state` / :meth:`Trigger.restore`, so a restarted run
+fires exactly where the uninterrupted one would have.
+
+Triggers (small, comparable, printable; ``str()`` names the schedule in logs and files):
+
+* ``Every(n)``              -- step is a multiple of n (n = 0: never)
+* ``StrainEvery(x, after)`` -- each time the accumulated strain passes after + k x
+* ``PerDecade(q, k)``       -- each time floor(k log10 obs[q]) changes (not the first value)
+* ``Elapsed(steps, seconds)`` -- n steps or s seconds since it last fired (both restart then)
+* ``WallEvery(s)``          -- s seconds of wall time since it last fired (first call fires)
+* ``After(strain, t)``      -- t, asked only once the accumulated strain reaches ``strain``
+* ``FirstOf(t1, t2, ...)``  -- the first of its triggers that fires; the later ones are not
+  asked then (their memory does not move), as the analysis schedule has always worked
+* ``Never()``
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+_NO_LEVEL = -10**9      # how run files before the schedule-as-data code stored "no decade yet"
+
+
+@dataclass
+class Clock:
+    """Where the run is: accepted steps and strain in all, and within the current leg."""
+
+    step: int = 0
+    strain: float = 0.0
+    leg: int = 0
+    leg_strain: float = 0.0
+    leg_steps: int = 0
+
+    def advance(self, dgamma: float) -> None:
+        self.step += 1
+        self.leg_steps += 1
+        self.strain += abs(dgamma)
+        self.leg_strain += abs(dgamma)
+
+    def next_leg(self) -> None:
+        self.leg, self.leg_strain, self.leg_steps = self.leg + 1, 0.0, 0
+
+    def state(self) -> dict:
+        return dict(step=self.step, strain=self.strain, leg=self.leg,
+                    leg_strain=self.leg_strain, leg_steps=self.leg_steps)
+
+    @classmethod
+    def restore(cls, ck: dict) -> "Clock":
+        return cls(int(ck["step"]), float(ck["strain"]), int(ck["leg"]),
+                   float(ck["leg_strain"]), int(ck["leg_steps"]))
+
+
+class Trigger:
+    """``fires(clock, obs, now)``: is the action due?  Memory, if any, moves when it fires."""
+
+    def fires(self, clock: Clock, obs: dict, now: float) -> bool:   # pragma: no cover
+        raise NotImplementedError
+
+    def state(self) -> dict:
+        """What a checkpoint must keep for a restart to resume this schedule exactly."""
+        return {}
+
+    def restore(self, ck: dict) -> None:
+        pass
+
+    def __eq__(self, other):
+        return type(self) is type(other) and vars(self) == vars(other)
+
+    def __repr__(self):
+        return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in vars(self).items())})"
+
+
+class Never(Trigger):
+    def fires(self, clock, obs, now):
+        return False
+
+
+class Every(Trigger):
+    def __init__(self, n: int):
+        self.n = int(n)
+
+    def fires(self, clock, obs, now):
+        return self.n > 0 and clock.step % self.n == 0
+
+
+class StrainEvery(Trigger):
+    """Fires when the accumulated strain enters a new interval [after + k x, after + (k+1) x)
+    with k above the last one it fired in (memory ``strain_mark``)."""
+
+    def __init__(self, x: float, after: float = 0.0):
+        self.x, self.after, self.mark = float(x), float(after), 0
+
+    def fires(self, clock, obs, now):
+        if self.x <= 0:
+            return False
+        mark = int(math.floor((clock.strain - self.after) / self.x))
+        if mark > self.mark:
+            self.mark = mark
+            return True
+        return False
+
+    def state(self):
+        return dict(strain_mark=self.mark)
+
+    def restore(self, ck):
+        self.mark = int(ck.get("strain_mark", 0))
+
+    def __eq__(self, other):
+        return type(other) is StrainEvery and (self.x, self.after) == (other.x, other.after)
+
+
+class PerDecade(Trigger):
+    """Fires ``k`` times per decade of ``obs[quantity]``: when floor(k log10 q) differs from
+    the value at the previous call (memory ``level``; the first value only sets it)."""
+
+    def __init__(self, quantity: str, k: float):
+        self.quantity, self.k, self.level = quantity, float(k), None
+
+    def fires(self, clock, obs, now):
+        if self.k <= 0:
+            return False
+        q = obs[self.quantity]
+        if not q > 0:
+            return False
+        new = int(math.floor(self.k * math.log10(q)))
+        fired = self.level is not None and new != self.level
+        self.level = new
+        return fired
+
+    def state(self):
+        return dict(level=_NO_LEVEL if self.level is None else self.level)
+
+    def restore(self, ck):
+        level = ck.get("level", _NO_LEVEL)
+        self.level = None if level is None or level == _NO_LEVEL or not math.isfinite(level) \
+            else int(level)
+
+    def __eq__(self, other):
+        return type(other) is PerDecade and (self.quantity, self.k) == (other.quantity, other.k)
+
+
+class WallEvery(Trigger):
+    """Fires when ``seconds`` of wall time have passed since it last fired (the first call
+    fires).  Wall time is not resumed by a restart."""
+
+    def __init__(self, seconds: float):
+        self.seconds, self.last = float(seconds), -math.inf
+
+    def fires(self, clock, obs, now):
+        if now - self.last >= self.seconds:
+            self.last = now
+            return True
+        return False
+
+    def __eq__(self, other):
+        return type(other) is WallEvery and self.seconds == other.seconds
+
+
+class Elapsed(Trigger):
+    """Fires when ``steps`` accepted steps or ``seconds`` of wall time have passed since it
+    last fired (or since the run or restart began); both counts restart then."""
+
+    def __init__(self, steps: int | None = None, seconds: float | None = None,
+                 start_step: int = 0, start_time: float | None = None):
+        self.steps, self.seconds = steps, seconds
+        self.last_step = start_step
+        self.last_time = time.monotonic() if start_time is None else start_time
+
+    def fires(self, clock, obs, now):
+        if (self.steps is not None and clock.step - self.last_step >= self.steps) or \
+                (self.seconds is not None and now - self.last_time >= self.seconds):
+            self.last_step, self.last_time = clock.step, now
+            return True
+        return False
+
+    def __eq__(self, other):
+        return type(other) is Elapsed and (self.steps, self.seconds) == (other.steps, other.seconds)
+
+    def __repr__(self):
+        return f"Elapsed(steps={self.steps!r}, seconds={self.seconds!r})"
+
+
+class After(Trigger):
+    """``inner``, asked only once the accumulated strain has reached ``strain``."""
+
+    def __init__(self, strain: float, inner: Trigger):
+        self.strain, self.inner = float(strain), inner
+
+    def fires(self, clock, obs, now):
+        return clock.strain >= self.strain and self.inner.fires(clock, obs, now)
+
+    def state(self):
+        return self.inner.state()
+
+    def restore(self, ck):
+        self.inner.restore(ck)
+
+
+class FirstOf(Trigger):
+    """Fires when one of its triggers fires, asking them in order and stopping at the first
+    that does (so the memory of the later ones does not move on that step)."""
+
+    def __init__(self, *triggers: Trigger):
+        self.triggers = tuple(t for t in triggers if not isinstance(t, Never))
+
+    def fires(self, clock, obs, now):
+        return any(t.fires(clock, obs, now) for t in self.triggers)   # any() stops at the first
+
+    def state(self):
+        out = {}
+        for t in self.triggers:
+            out.update(t.state())
+        return out
+
+    def restore(self, ck):
+        for t in self.triggers:
+            t.restore(ck)
+
+    def __repr__(self):
+        return f"FirstOf({', '.join(map(repr, self.triggers))})"
+
+
+def analysis_trigger(obs_cfg: dict) -> Trigger:
+    """The analysis schedule of the scene's [observables] table: every ``analysis_every``
+    steps, else every ``analysis_strain`` of accumulated strain, else ``analysis_per_decade``
+    times per decade of ``analysis_quantity``; none before ``analysis_from_strain``."""
+    c = obs_cfg
+    parts = []
+    if c["analysis_every"]:
+        parts.append(Every(c["analysis_every"]))
+    if c["analysis_strain"] > 0:
+        parts.append(StrainEvery(c["analysis_strain"], after=c["analysis_from_strain"]))
+    if c["analysis_per_decade"] > 0:
+        parts.append(PerDecade(c["analysis_quantity"], c["analysis_per_decade"]))
+    if not parts:
+        return Never()
+    return After(c["analysis_from_strain"], FirstOf(*parts))
+
+
+def analyses_enabled(obs_cfg: dict) -> bool:
+    c = obs_cfg
+    return bool(c["analysis_every"] or c["analysis_per_decade"] or c["analysis_strain"])
