@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 from petsc4py import PETSc  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-from parflow.cell import velocity_gradient  # noqa: E402
+from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models import chain  # noqa: E402
 from parflow.solvers import configure_cholesky  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402

@@ -1,9 +1,6 @@
-"""Contact geometry and contact forces of hard particles (DESIGN §2, §5).
+"""Contact forces of hard particles (DESIGN §5); the candidate pairs come from
+``parflow.geometry.find_candidates``.
 
-* ``find_candidates``: pairs with gap < skin under Lees-Edwards shear.  The cell is remapped
-  by a lattice vector so that its tilt is in [-Lx/2, Lx/2]; a cKDTree with periodic
-  ``boxsize`` in the orthogonal reference frame of that cell finds pairs within the cut
-  times the metric distortion of the tilt; true minimum-image distances filter them.
 * ``rigidity``: S_C (Nc x dN), -n at i, +n at j.
 * ``solve_lcp``: f >= 0, w = S S^T f + q >= 0, f . w = 0 (q = b + h/dg for the suspension
   step) by block principal pivoting from a warm set, with a Lawson-Hanson primal active
@@ -22,73 +19,12 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.linalg
 import scipy.sparse.linalg as spla
-from scipy.spatial import cKDTree
 
+from .geometry import Candidates, find_candidates  # noqa: F401  (the LCP works on them)
 from .state import InputError
 
 
 # =========================================================================== neighbours
-
-@dataclass
-class Candidates:
-    """Candidate pairs (i < j) and their geometry in the current cell."""
-
-    i: np.ndarray
-    j: np.ndarray
-    shift: np.ndarray      # (Nc, d) integer image shifts in the state's frame: r = h (s_j + n - s_i)
-    r: np.ndarray          # (Nc, d)
-    dist: np.ndarray
-    n: np.ndarray          # unit vectors
-    gap: np.ndarray        # |r| - (R_i + R_j)
-    b: np.ndarray          # n . E r
-
-    def __len__(self):
-        return int(self.i.shape[0])
-
-
-def remap(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lees-Edwards remapping: U unimodular with h_r = h U, tilt |h_r[0,1]| <= Lx/2."""
-    k = -np.rint(h[0, 1] / h[0, 0])
-    U = np.array([[1.0, k], [0.0, 1.0]])
-    return h @ U, U
-
-
-def find_candidates(s, radii, h, E, skin: float) -> Candidates:
-    """All pairs with gap < ``skin`` (minimum image in the remapped cell)."""
-    hr, U = remap(h)
-    Uinv = np.linalg.inv(U)
-    sr = s @ Uinv.T                           # reduced coordinates in the remapped cell
-    off = np.floor(sr)
-    sr = sr - off
-    sr[sr >= 1.0] = 0.0
-    Lx, Ly = hr[0, 0], hr[1, 1]
-    A = np.diag([Lx, Ly]) @ np.linalg.inv(hr)     # real space -> orthogonal reference frame
-    stretch = float(np.linalg.norm(A, 2))
-    cut = 2.0 * float(radii.max()) + skin
-    if cut * stretch >= 0.5 * min(Lx, Ly):
-        raise InputError(f"suspension: the box ({Lx:.3g} x {Ly:.3g}) is too small for the "
-                         f"neighbour search (cut {cut:.3g}); use more discs or a smaller skin")
-    X = sr * np.array([Lx, Ly])
-    tree = cKDTree(X, boxsize=[Lx, Ly])
-    pairs = tree.query_pairs(cut * stretch * (1 + 1e-12), output_type="ndarray")
-    i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-    sw = np.where(i > j)                       # i < j
-    i[sw], j[sw] = j[sw], i[sw]
-    ds = sr[j] - sr[i]
-    nr = -np.rint(ds)
-    r = (ds + nr) @ hr.T
-    dist = np.sqrt(np.einsum("ad,ad->a", r, r))
-    gap = dist - radii[i] - radii[j]
-    keep = gap < skin
-    i, j, nr, r, dist, gap = i[keep], j[keep], nr[keep], r[keep], dist[keep], gap[keep]
-    order = np.lexsort((j, i))
-    i, j, nr, r, dist, gap = i[order], j[order], nr[order], r[order], dist[order], gap[order]
-    # shift in the state's frame: s_j + n - s_i = U (sr_j + nr - sr_i) with sr = U^-1 s - off
-    shift = np.rint((nr + off[i] - off[j]) @ U.T).astype(np.int64)
-    n = r / dist[:, None]
-    b = np.einsum("ad,ad->a", n, r @ E.T)
-    return Candidates(i, j, shift, r, dist, n, gap, b)
-
 
 # =========================================================================== operators
 

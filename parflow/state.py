@@ -16,14 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-
-class InputError(ValueError):
-    """A user error: reported as one line, without a traceback."""
-
-
-class Terminated(BaseException):
-    """SIGTERM arrived (``kill``, a batch scheduler's time limit): the run stops at the end
-    of the step under way, leaves a checkpoint and says so in its status, like an interrupt."""
+from .errors import InputError, Terminated  # noqa: F401  (raised here; imported from here by many)
+from .geometry import cell_at
 
 
 class StopSignals:
@@ -146,7 +140,6 @@ class State:
 
     @property
     def h(self) -> np.ndarray:
-        from .cell import cell_at
         return cell_at(self.h0, self.E, self.gamma)
 
     @property

@@ -43,9 +43,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cell import cell_at, velocity_gradient
-from .contacts import (FACTORS, Candidates, LCPFailure, LCPInfo, find_candidates,  # noqa: F401
-                       remap, rigidity, solve_lcp)
+from .contacts import FACTORS, LCPFailure, LCPInfo, rigidity, solve_lcp  # noqa: F401
+from .geometry import Candidates, cell_at, find_candidates, velocity_gradient
 from .state import InputError, State
 
 PHI_J = 0.843              # shear-jamming packing fraction of the 50:50, 1.4 mixture (2D)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cell import cell_at, pair_geometry
+from .geometry import cell_at, pair_geometry
 from .operators import RigidityOperators
 from .solvers import CholeskySolver, SingularOperator, SolveInfo, resolve_parallel
 from .state import State

@@ -1,7 +1,7 @@
 """Small random bonded systems, dense reference operators and a scene runner for the tests."""
 import numpy as np
 
-from parflow.cell import velocity_gradient
+from parflow.geometry import velocity_gradient
 from parflow.state import Bonds, State
 
 

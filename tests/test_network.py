@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from parflow.cell import pair_geometry
+from parflow import geometry
+from parflow.geometry import pair_geometry
 from parflow.integrate import Heun, StepControl
 from parflow.models import network as nw
 from parflow.models import network_build as nb
@@ -40,7 +41,7 @@ def sheared(st, gamma, s=None):
 def true_min_image(dx, h):
     """Brute-force minimum image: the shortest of the 3^d translates (by the remapped cell's
     vectors) of the reduced-rint image."""
-    hr = nw.remapped_cell(h)
+    hr = geometry.remapped_cell(h)
     red = np.linalg.solve(hr, dx.T).T
     base = (red - np.rint(red)) @ hr.T
     best = base
@@ -72,7 +73,7 @@ def test_lees_edwards_rod_across_the_boundary():
         rm = pair_geometry(s, h - e * st.E @ h, st.E, st.bonds.i, st.bonds.j, st.bonds.shift)[1]
         assert (rp[0] - rm[0]) / (2 * e) == pytest.approx(b[0], rel=1e-7, abs=1e-9)
         # the minimum-image machinery (remapped cell) finds the same short vector
-        mi = nw.MinImage(h)
+        mi = geometry.MinImage(h)
         assert abs(mi.hr[0, 1]) <= L / 2 + 1e-12
         v = mi.vectors(mi.reduced(s[1:]) - mi.reduced(s[:1]))
         assert np.linalg.norm(v) == pytest.approx(np.hypot(gamma, 1.0), rel=1e-12)
@@ -88,7 +89,7 @@ def test_network_bonds_follow_the_cell(state):
         h = sheared(state, gamma).h
         r = pair_geometry(state.s, h, state.E, bd.i, bd.j, bd.shift)[0]
         np.testing.assert_allclose(r, r0 @ (np.eye(2) + gamma * state.E).T, atol=1e-12)
-        mi = nw.MinImage(h)
+        mi = geometry.MinImage(h)
         sr = mi.reduced(state.s)
         v = mi.vectors(sr[bd.j] - sr[bd.i])
         np.testing.assert_allclose(np.linalg.norm(v, axis=1), np.linalg.norm(r, axis=1), rtol=1e-12)
@@ -180,7 +181,7 @@ def test_point_response_against_dense(strained):
     # dense reference: N f = e_beta, V = S^T f, distances by brute-force minimum image
     x = st.s @ F.h.T
     mid = x[st.bonds.i] + 0.5 * r
-    rmax = nw.min_image_radius(F.h)
+    rmax = geometry.min_image_radius(F.h)
     nb_ = int(rmax / dr)
     sums, cnt, sf, cf, VV = np.zeros(nb_), np.zeros(nb_), np.zeros(nb_), np.zeros(nb_), []
     for beta in rods:
@@ -224,7 +225,7 @@ def test_velocity_correlation_against_brute_force(strained):
     x = st.s @ h.T
     iu, ju = np.triu_indices(st.n, 1)
     dist = np.linalg.norm(true_min_image(x[ju] - x[iu], h), axis=1)
-    rmax = nw.min_image_radius(h)
+    rmax = geometry.min_image_radius(h)
     k = (dist / dr).astype(int)
     nb_ = int(rmax / dr)
     ok = k < nb_
@@ -368,7 +369,7 @@ def test_fft_correlation_is_the_grid_sum(scheme):
     assert out["n_exact"] == 0 and out["scheme"] == scheme
     M = np.array(nw.correlation_grid(h, spacing))
     np.testing.assert_array_equal(out["grid"], M)
-    mi = nw.MinImage(h)
+    mi = geometry.MinImage(h)
     u = mi.reduced(s) * M
     n = len(s)
     iu, ju = np.triu_indices(n, 1)
@@ -406,7 +407,7 @@ def random_exact():
     s, h, V = random_state(3000, seed=1)
     ex = nw.velocity_correlation(s, h, V, 0.5)
     iu, ju = np.triu_indices(len(s), 1)
-    r = np.sqrt(pair_r2(nw.MinImage(h), s, iu, ju))
+    r = np.sqrt(pair_r2(geometry.MinImage(h), s, iu, ju))
     dots = np.einsum("pd,pd->p", V[iu], V[ju])
     return s, h, V, ex, r, dots
 
@@ -477,7 +478,7 @@ def test_fft_correlation_plane_wave():
     dr, spacing, gamma = 0.5, 0.31, 0.7
     L = 16.3
     h = np.array([[L, gamma * L], [0.0, L]])
-    mi = nw.MinImage(h)
+    mi = geometry.MinImage(h)
     M = np.array(nw.correlation_grid(h, spacing))
     g = np.stack(np.meshgrid(*[np.arange(m) for m in M], indexing="ij"), -1).reshape(-1, 2)
     s = (g / M) @ np.linalg.inv(mi.to_r).T               # h-reduced coordinates of grid points

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from parflow.cell import cell_at, pair_geometry, velocity_gradient
+from parflow.geometry import cell_at, pair_geometry, velocity_gradient
 from parflow.solvers import SingularOperator
 from parflow.system import BondedSystem
 from parflow.state import Bonds, InputError, State

@@ -9,7 +9,7 @@ import pytest
 
 from parflow import prepare
 from parflow import suspension as su
-from parflow.cell import cell_at, velocity_gradient
+from parflow.geometry import cell_at, velocity_gradient
 from parflow.models import suspension as msu
 from parflow.state import InputError
 

@@ -40,7 +40,7 @@ path = "{path}"
 
 
 def _reference(state):
-    from parflow.cell import pair_geometry
+    from parflow.geometry import pair_geometry
     bd = state.bonds
     _, _, n, _ = pair_geometry(state.s, state.h, state.E, bd.i, bd.j, bd.shift)
     return nw.dense_spectrum(n, bd, state.n)

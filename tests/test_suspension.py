@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
+from parflow import geometry
 from parflow import contacts as co
 from parflow import suspension as su
 from parflow.state import InputError
@@ -42,7 +43,7 @@ def test_initial_state(dense):
 def test_candidates_match_brute_force(dense, gamma):
     st = dense.copy()
     st.gamma = gamma
-    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.3)
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.3)
     ref = brute_pairs(st, 0.3)
     assert len(c) == len(ref)
     for i, j, g in zip(c.i, c.j, c.gap):
@@ -60,7 +61,7 @@ def test_pair_across_lees_edwards_boundary(gamma):
     r = 1.05 * np.array([0.6, 0.8])
     X1 = X0 + r - np.array([gamma * L, L])          # its image across the top is at X0 + r
     st = su.from_configuration(np.array([X0, X1]), [0.5, 0.5], [L, L], gamma=gamma)
-    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.1)
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.1)
     assert len(c) == 1
     assert abs(c.gap[0] - 0.05) < 1e-12
     assert np.allclose(c.r[0], r, atol=1e-12)
@@ -77,7 +78,7 @@ def check_lcp(S, q, f, tol=1e-9):
 def test_lcp_matches_nnls():
     st = su.make_suspension(48, 0.6, seed=5)
     rng = np.random.default_rng(0)
-    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.4)
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.4)
     S = su.rigidity(c, st.n)
     assert np.linalg.matrix_rank(S.toarray()) == len(c)    # q is in range(S)
     for dg in (1e-1, 1e-2, 1e-3):
@@ -93,7 +94,7 @@ def test_lcp_matches_nnls():
 
 
 def test_lcp_dense_complementarity(dense):
-    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
     S = su.rigidity(c, dense.n)
     assert len(c) > 2 * dense.n                        # N_C is singular
     q = c.b + c.gap / 1e-3
@@ -105,7 +106,7 @@ def test_lcp_dense_complementarity(dense):
 def test_singular_active_set_is_handled():
     """Duplicated contacts: N_AA is exactly singular (a self-stress); no crash, a valid f."""
     st = su.make_suspension(32, 0.7, seed=2)
-    c = su.find_candidates(st.s, st.radii, st.h, st.E, 0.05)
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.05)
     S1 = su.rigidity(c, st.n).toarray()
     S = np.vstack([S1, S1[:3]])
     import scipy.sparse as sp
@@ -174,7 +175,7 @@ def test_ranks_agree(comm, dense):
 
 
 def test_factor_backends_agree(dense):
-    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
     S = su.rigidity(c, dense.n)
     q = c.b + c.gap / 1e-3
     f1, i1 = su.solve_lcp(S, q, factor="cholmod")
@@ -238,7 +239,7 @@ def test_bordered_solves_match_fresh_factorisations(dense):
     """A walk of active sets, a few contacts in and out per move: the solutions from one
     factorisation with bordered (Schur complement) updates equal dense solves; a border
     larger than max_border, or one that makes N_AA singular, gets a fresh factorisation."""
-    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
     S = su.rigidity(c, dense.n)
     N = (S @ S.T).tocsr()
     Nd = N.toarray()
@@ -267,7 +268,7 @@ def test_bordered_singular_border_falls_back(dense):
     """Adding a copy of an active contact makes N_AA singular: the bordered update notices
     (singular Schur complement), the fresh factorisation is shifted and counted."""
     import scipy.sparse as sp
-    c = su.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
     S1 = su.rigidity(c, dense.n)
     S = sp.vstack([S1, S1[:1]]).tocsr()
     N = (S @ S.T).tocsr()

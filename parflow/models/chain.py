@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cell import velocity_gradient
+from ..geometry import velocity_gradient
 from ..state import Bonds, InputError, State
 
 FLOW = "extension"

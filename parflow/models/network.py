@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ..cell import velocity_gradient
+from ..geometry import MinImage, pair_vectors, remapped_cell, velocity_gradient
 from ..state import Bonds, InputError, State
 from . import network_build as _nb
 
@@ -187,52 +187,7 @@ def observables(state: State, F) -> dict:
 
 
 # --------------------------------------------------------------------------- geometry
-
-def remapped_cell(h: np.ndarray) -> np.ndarray:
-    """h_r = h U with U unimodular: each column size-reduced against the earlier ones
-    (upper-triangular h: |h_r[m, k]| <= h[m, m] / 2 for m < k).  For simple shear this is the
-    Lees-Edwards remapping of the tilt into [-Lx/2, Lx/2]."""
-    hr = np.array(h, dtype=float)
-    d = hr.shape[0]
-    for k in range(1, d):                       # loops over dimensions only
-        for m in range(k - 1, -1, -1):
-            hr[:, k] -= np.rint(hr[m, k] / hr[m, m]) * hr[:, m]
-    return hr
-
-
-def min_image_radius(h: np.ndarray) -> float:
-    """Half the smallest distance between opposite faces of the (remapped) cell: below it,
-    the reduced rint convention gives the true minimum image."""
-    hr = remapped_cell(h)
-    vol = abs(np.linalg.det(hr))
-    inv = np.linalg.inv(hr)
-    # height along column k = vol / |face normal| = 1 / |row k of h^-1|
-    return 0.5 * float(np.min(1.0 / np.linalg.norm(inv, axis=1))) if vol > 0 else 0.0
-
-
-class MinImage:
-    """Minimum-image displacements in a (sheared) periodic cell h.
-
-    Positions are given as reduced coordinates of h (unwrapped, any integers); they are
-    expressed in the remapped cell h_r, displacements are reduced by rint there, and
-    mapped back to real space with h_r."""
-
-    def __init__(self, h: np.ndarray):
-        self.h = np.asarray(h, dtype=float)
-        self.hr = remapped_cell(self.h)
-        self.to_r = np.linalg.solve(self.hr, self.h)       # s_r = h_r^-1 h s
-        self.rmax = min_image_radius(self.h)
-
-    def reduced(self, s: np.ndarray) -> np.ndarray:
-        """(n, d) reduced coordinates in h_r, wrapped into [0, 1)."""
-        sr = s @ self.to_r.T
-        return sr - np.floor(sr)
-
-    def vectors(self, dsr: np.ndarray) -> np.ndarray:
-        """Real minimum-image vectors from reduced (h_r) displacements (..., d)."""
-        dsr = dsr - np.rint(dsr)
-        return dsr @ self.hr.T
-
+# (the cell, the remap and minimum images: parflow.geometry)
 
 def bond_midpoints(s: np.ndarray, bonds: Bonds) -> np.ndarray:
     """Reduced coordinates of rod midpoints: s_i + (s_j + n - s_i) / 2."""
@@ -723,7 +678,6 @@ def analyses(system, state: State, F) -> dict:
     ``state`` must carry the current positions (state.s at F.gamma): checked against F.r."""
     meta = {k: state.meta.get(k, PARAMS[k][1]) for k in _ANALYSIS_KEYS}
     bd, s, h = state.bonds, state.s, F.h
-    from ..cell import pair_vectors
     mism = float(np.max(np.abs(pair_vectors(s, h, bd.i, bd.j, bd.shift) - F.r)))
     if not mism <= 1e-8 * max(1.0, float(np.abs(h).max())):
         raise RuntimeError(f"network.analyses: the positions given do not match the force "

@@ -90,7 +90,7 @@ class Network:
 # --------------------------------------------------------------------------- geometry
 
 def bond_vectors(s: np.ndarray, h0: np.ndarray, bonds: Bonds) -> np.ndarray:
-    """r_ij = h0 (s_j + n - s_i), (Nb, d); same operations as parflow.cell.pair_vectors."""
+    """r_ij = h0 (s_j + n - s_i), (Nb, d); same operations as parflow.geometry.pair_vectors."""
     ds = s[bonds.j] - s[bonds.i]
     ds += bonds.shift
     return ds @ h0.T
