@@ -96,15 +96,15 @@ def _reset_peak() -> float:
 
 def one(data: str, method: str, scheme: str, spacing: str, out: str) -> dict:
     """Time one C(r) of the system in ``data`` (npz: s, h, V); C and counts go to ``out``."""
-    from parflow.models import network as nw
+    from parflow.observables import correlation as corr
     d = np.load(data)
     s, h, V = d["s"], d["h"], d["V"]
     rss0 = _reset_peak()
     c0, t0 = time.process_time(), time.perf_counter()
     if method == "exact":
-        res = nw.velocity_correlation(s, h, V, DR)
+        res = corr.velocity_correlation(s, h, V, DR)
     else:
-        res = nw.velocity_correlation_fft(s, h, V, DR, spacing=float(spacing), scheme=scheme)
+        res = corr.velocity_correlation_fft(s, h, V, DR, spacing=float(spacing), scheme=scheme)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak = _status_mb("VmHWM")
     np.savez(out, C=res["C"], counts=res["counts"])
@@ -115,7 +115,7 @@ def one(data: str, method: str, scheme: str, spacing: str, out: str) -> dict:
         rec.update(scheme=scheme, grid=[int(m) for m in res["grid"]],
                    eps=round(float(res["eps"]), 4),
                    spacing=round(float(spacing) if float(spacing) > 0
-                                 else nw.corr_spacing(h, DR), 4),
+                                 else corr.corr_spacing(h, DR), 4),
                    default_spacing=float(spacing) <= 0,
                    r_exact=res["n_exact"] * DR)
     return rec

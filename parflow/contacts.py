@@ -20,7 +20,7 @@ import scipy.sparse as sp
 import scipy.linalg
 import scipy.sparse.linalg as spla
 
-from .geometry import Candidates, find_candidates  # noqa: F401  (the LCP works on them)
+from .geometry import Candidates
 from .state import InputError
 
 

@@ -11,6 +11,8 @@ import pytest
 from petsc4py import PETSc
 
 from parflow import geometry
+from parflow.observables import correlation as corr
+from parflow.observables import response as resp
 from parflow.geometry import pair_geometry
 from parflow.integrate import Heun, StepControl
 from parflow.models import network as nw
@@ -174,10 +176,10 @@ def test_point_response_against_dense(strained):
     st, S, N, r, n = strained
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     F = sysm.evaluate(st.s, st.gamma)
-    rods = nw.pick_rods(st.s, F.h, st.bonds, 3)
+    rods = resp.pick_rods(st.s, F.h, st.bonds, 3)
     assert len(set(rods.tolist())) == 3
     dr = 0.5
-    pr = nw.point_response(sysm, st.s, F.h, st.bonds, rods, dr)
+    pr = resp.point_response(sysm, st.s, F.h, st.bonds, rods, dr)
     # dense reference: N f = e_beta, V = S^T f, distances by brute-force minimum image
     x = st.s @ F.h.T
     mid = x[st.bonds.i] + 0.5 * r
@@ -210,7 +212,7 @@ def test_point_response_against_dense(strained):
 def test_two_exponential_fit_recovers_lengths():
     r = np.arange(0.25, 40, 0.5)
     P = 2.0 * np.exp(-r / 1.5) + 0.05 * np.exp(-r / 12.0)
-    fit = nw.fit_two_exponentials(r, P * (1 + 1e-3 * np.sin(7 * r)))
+    fit = resp.fit_two_exponentials(r, P * (1 + 1e-3 * np.sin(7 * r)))
     assert fit["l_c"] == pytest.approx(1.5, rel=0.02)
     assert fit["l_r"] == pytest.approx(12.0, rel=0.02)
     assert fit["l_c_err"] < 0.05 and fit["l_r_err"] < 0.5
@@ -221,7 +223,7 @@ def test_velocity_correlation_against_brute_force(strained):
     h = st.h
     V = np.random.default_rng(1).standard_normal((st.n, 2))
     dr = 0.4
-    out = nw.velocity_correlation(st.s, h, V, dr, block=700)      # several row blocks
+    out = corr.velocity_correlation(st.s, h, V, dr, block=700)      # several row blocks
     x = st.s @ h.T
     iu, ju = np.triu_indices(st.n, 1)
     dist = np.linalg.norm(true_min_image(x[ju] - x[iu], h), axis=1)
@@ -353,7 +355,7 @@ def pair_r2(mi, s, iu, ju):
     """Squared minimum-image distances of pairs (the reduced-rint formula; below r_max it is
     the true minimum image, see test_velocity_correlation_against_brute_force)."""
     sr = mi.reduced(s)
-    return nw._min_image_r2(mi.hr, [sr[ju, c] - sr[iu, c] for c in range(s.shape[1])])
+    return corr._min_image_r2(mi.hr, [sr[ju, c] - sr[iu, c] for c in range(s.shape[1])])
 
 
 @pytest.mark.parametrize("scheme", ["ngp", "cic"])
@@ -365,9 +367,9 @@ def test_fft_correlation_is_the_grid_sum(scheme):
     offsets -1, 0, 1) and the halving are checked against a direct sum that has no self terms."""
     s, h, V = random_state(300, seed=4)
     dr, spacing = 0.5, 0.3
-    out = nw.velocity_correlation_fft(s, h, V, dr, spacing=spacing, scheme=scheme, r_exact=0)
+    out = corr.velocity_correlation_fft(s, h, V, dr, spacing=spacing, scheme=scheme, r_exact=0)
     assert out["n_exact"] == 0 and out["scheme"] == scheme
-    M = np.array(nw.correlation_grid(h, spacing))
+    M = np.array(corr.correlation_grid(h, spacing))
     np.testing.assert_array_equal(out["grid"], M)
     mi = geometry.MinImage(h)
     u = mi.reduced(s) * M
@@ -388,7 +390,7 @@ def test_fft_correlation_is_the_grid_sum(scheme):
                    for cj, wj in zip(corners, wts)]
     for gi, gj, wi, wj in options:
         off = (gj[ju] - gi[iu]) / M                      # reduced grid offset of the pair
-        r2 = nw._min_image_r2(mi.hr, [off[:, 0], off[:, 1]])
+        r2 = corr._min_image_r2(mi.hr, [off[:, 0], off[:, 1]])
         k = (np.sqrt(r2) / dr).astype(int)
         ok = k < nbins
         w = (wi[iu] * wj[ju])[ok]
@@ -405,7 +407,7 @@ def random_exact():
     """3000 random nodes at gamma = 0.7 with a correlated field, their exact C(r), and the
     distance and V_i.V_j of every pair."""
     s, h, V = random_state(3000, seed=1)
-    ex = nw.velocity_correlation(s, h, V, 0.5)
+    ex = corr.velocity_correlation(s, h, V, 0.5)
     iu, ju = np.triu_indices(len(s), 1)
     r = np.sqrt(pair_r2(geometry.MinImage(h), s, iu, ju))
     dots = np.einsum("pd,pd->p", V[iu], V[ju])
@@ -423,10 +425,10 @@ def test_fft_correlation_against_exact(scheme, random_exact):
     s, h, V, ex, r, dots = random_exact
     absdot = np.abs(dots)
     dr = 0.5
-    ff = nw.velocity_correlation_fft(s, h, V, dr, scheme=scheme)
+    ff = corr.velocity_correlation_fft(s, h, V, dr, scheme=scheme)
     eps = ff["eps"]
     ne = ff["n_exact"]
-    assert ne == int(nw.CORR_R_EXACT / dr) and eps < dr
+    assert ne == int(corr.CORR_R_EXACT / dr) and eps < dr
     np.testing.assert_array_equal(ff["counts"][:ne], ex["counts"][:ne])
     np.testing.assert_allclose(ff["C"][:ne], ex["C"][:ne], rtol=1e-10, atol=1e-12)
     nbins = ex["counts"].size
@@ -479,23 +481,23 @@ def test_fft_correlation_plane_wave():
     L = 16.3
     h = np.array([[L, gamma * L], [0.0, L]])
     mi = geometry.MinImage(h)
-    M = np.array(nw.correlation_grid(h, spacing))
+    M = np.array(corr.correlation_grid(h, spacing))
     g = np.stack(np.meshgrid(*[np.arange(m) for m in M], indexing="ij"), -1).reshape(-1, 2)
     s = (g / M) @ np.linalg.inv(mi.to_r).T               # h-reduced coordinates of grid points
     k = 2 * np.pi * np.linalg.solve(h.T, np.array([2.0, -1.0]))
     ph = (g / M) @ mi.hr.T @ k
     V = np.column_stack([np.cos(ph), np.sin(ph)])
     D = g[1:] / M                                        # the offsets D != 0
-    r2 = nw._min_image_r2(mi.hr, [D[:, 0].copy(), D[:, 1].copy()])
+    r2 = corr._min_image_r2(mi.hr, [D[:, 0].copy(), D[:, 1].copy()])
     rD = (D - np.rint(D)) @ mi.hr.T
     nbins = int(mi.rmax / dr)
     kb = (np.sqrt(r2) / dr).astype(int)
     ok = kb < nbins
     expect = np.bincount(kb[ok], np.cos(rD[ok] @ k), nbins) / np.bincount(kb[ok], None, nbins)
-    ex = nw.velocity_correlation(s, h, V, dr)
+    ex = corr.velocity_correlation(s, h, V, dr)
     np.testing.assert_allclose(ex["C"], expect, rtol=0, atol=1e-10)
     for scheme in ("ngp", "cic"):
-        ff = nw.velocity_correlation_fft(s, h, V, dr, spacing=spacing, scheme=scheme, r_exact=0)
+        ff = corr.velocity_correlation_fft(s, h, V, dr, spacing=spacing, scheme=scheme, r_exact=0)
         np.testing.assert_array_equal(ff["grid"], M)
         np.testing.assert_allclose(ff["C"], expect, rtol=0, atol=1e-9)
         np.testing.assert_allclose(ff["counts"], ex["counts"], rtol=1e-12, atol=1e-6)
@@ -505,7 +507,7 @@ def test_fft_correlation_plane_wave():
     kk = np.linalg.norm(k)
     ph = (s @ h.T) @ k
     V = np.column_stack([np.cos(ph), np.sin(ph)])
-    ff = nw.velocity_correlation_fft(s, h, V, dr)
+    ff = corr.velocity_correlation_fft(s, h, V, dr)
     assert ff["V2"] == pytest.approx(1.0, rel=1e-12)
     r1 = np.arange(ff["C"].size) * dr
     r2_ = r1 + dr
@@ -523,24 +525,24 @@ def test_correlation_method_by_size(monkeypatch, comm, strained):
     C(r) is computed on rank 0 and broadcast, and equals on every rank, bit for bit, the
     same computation done locally (the serial result)."""
     s, h, V = random_state(500, seed=3)
-    assert nw.correlation(s, h, V, 0.5)["method"] == "exact"
-    monkeypatch.setattr(nw, "CORR_EXACT_MAX", 499)
-    out = nw.correlation(s, h, V, 0.5)
+    assert corr.correlation(s, h, V, 0.5)["method"] == "exact"
+    monkeypatch.setattr(corr, "CORR_EXACT_MAX", 499)
+    out = corr.correlation(s, h, V, 0.5)
     assert out["method"] == "fft"
-    ref = nw.velocity_correlation_fft(s, h, V, 0.5)
+    ref = corr.velocity_correlation_fft(s, h, V, 0.5)
     np.testing.assert_array_equal(out["C"], ref["C"])
     with pytest.raises(InputError, match="method must be one of"):
-        nw.correlation(s, h, V, 0.5, method="fast")
+        corr.correlation(s, h, V, 0.5, method="fast")
     st = strained[0].copy()
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     F = sysm.evaluate(st.s, st.gamma)
-    monkeypatch.setattr(nw, "CORR_EXACT_MAX", st.n - 1)
+    monkeypatch.setattr(corr, "CORR_EXACT_MAX", st.n - 1)
     for method, expect in (("auto", "fft"), ("exact", "exact"), ("fft", "fft")):
         st.meta.update(correlation=1, corr_method=method, corr_dr=0.25, spectrum="none",
                        response_rods=1)
         res = nw.analyses(sysm, st, F)
         assert res["scalars"]["corr_method"] == expect
-        local = nw.correlation(st.s, F.h, F.V_na, 0.25, 0.0, expect)
+        local = corr.correlation(st.s, F.h, F.V_na, 0.25, 0.0, expect)
         np.testing.assert_array_equal(res["arrays"]["corr_C"], local["C"])
         np.testing.assert_array_equal(res["arrays"]["corr_counts"], local["counts"])
         every = comm.allgather(res["arrays"]["corr_C"])
@@ -548,7 +550,7 @@ def test_correlation_method_by_size(monkeypatch, comm, strained):
         if expect == "fft":                    # a small cell: images in the exact bins
             assert 0 < res["scalars"]["corr_eps"] < 0.25
             ne = int(round(res["scalars"]["corr_r_exact"] / 0.25))
-            ex = nw.velocity_correlation(st.s, F.h, F.V_na, 0.25)
+            ex = corr.velocity_correlation(st.s, F.h, F.V_na, 0.25)
             assert ne == 12 and ex["counts"][ne - 1] > 0
             np.testing.assert_array_equal(local["counts"][:ne], ex["counts"][:ne])
             np.testing.assert_allclose(local["C"][:ne], ex["C"][:ne], rtol=1e-10, equal_nan=True)

@@ -26,6 +26,8 @@ import math
 
 import numpy as np
 
+from ..observables import correlation as corr
+from ..observables import response as resp
 from ..state import Bonds, InputError, State
 
 ENGINE = "contacts"
@@ -285,7 +287,6 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
     """P(f), C(r) and, on the frozen contact network, sigma, omega_min, the point response
     and delta_gamma, at the configuration of ``F`` (a probe of the current state)."""
     from ..solvers import SolveError
-    from . import network as nw
     meta = _meta(state.meta, _ANALYSIS_KEYS)
     s, h = np.asarray(state.s, float), F.h
     arrays, scalars = {}, {}
@@ -293,10 +294,10 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
     arrays.update(force_edges=pf["edges"], force_P=pf["P"])
     scalars.update(force_mean=pf["mean"], n_force_bearing=int(np.count_nonzero(force_bearing(F.f))))
     if meta["correlation"]:
-        cr = nw.correlation(s, h, F.V_na, meta["corr_dr"], meta["corr_rmax"])   # exact / FFT by N
+        cr = corr.correlation(s, h, F.V_na, meta["corr_dr"], meta["corr_rmax"])   # exact / FFT by N
         scalars["corr_method"] = cr["method"]
         arrays.update(corr_r=cr["r"], corr_C=cr["C"], corr_counts=cr["counts"])
-        scalars["corr_length"] = nw.crossing_length(cr["r"], cr["C"], counts=cr["counts"])
+        scalars["corr_length"] = corr.crossing_length(cr["r"], cr["C"], counts=cr["counts"])
     frozen = freeze(state, F)
     system = _frozen_system(comm, frozen, scene)
     scalars.update(frozen_error="", frozen_sigma=math.nan, frozen_omega_min=math.nan)
@@ -307,9 +308,9 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
         scalars["frozen_omega_min"] = _omega_min(system)
         if meta["response_rods"] > 0:
             bd = frozen.bonds
-            rods = nw.pick_rods(s, h, bd, meta["response_rods"])
-            pr = nw.point_response(system, s, h, bd, rods, meta["response_dr"])
-            fit = nw.fit_two_exponentials(pr["r"], pr["V_mean"], pr["counts_V"])
+            rods = resp.pick_rods(s, h, bd, meta["response_rods"])
+            pr = resp.point_response(system, s, h, bd, rods, meta["response_dr"])
+            fit = resp.fit_two_exponentials(pr["r"], pr["V_mean"], pr["counts_V"])
             arrays.update(resp_r=pr["r"], resp_V=pr["V_mean"], resp_counts_V=pr["counts_V"],
                           resp_f=pr["f_mean"], resp_rods=rods, resp_VV=pr["VV"])
             scalars.update({f"resp_{k}": v for k, v in fit.items()})
