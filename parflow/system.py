@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import cell_at, pair_geometry
+from .observables import stress
 from .operators import RigidityOperators
 from .solvers import CholeskySolver, SingularOperator, SolveInfo, resolve_parallel
 from .state import State
@@ -145,10 +146,9 @@ class BondedSystem:
     def _force(self, gamma, h, r, ell, n, b, tau, info) -> Force:
         V_na = self.ops.ST_numpy(tau)
         omega = self.omega
-        sigma = float(np.einsum("id,id->", V_na, V_na)) / omega
-        sigma_tb = -float(tau @ b) / omega
-        pressure = float(tau @ ell) / (self.state.d * omega)
-        return Force(gamma, h, r, ell, n, b, tau, V_na, sigma, sigma_tb, pressure, info)
+        return Force(gamma, h, r, ell, n, b, tau, V_na, stress.sigma(V_na, omega),
+                     stress.sigma_tb(tau, b, omega), stress.pressure(tau, ell, omega, self.state.d),
+                     info)
 
     def _solve_reused(self, n: np.ndarray, rhs: np.ndarray, what: str):
         """PCG for N(n) x = rhs, preconditioned by the loaded factor; (x, SolveInfo) when the

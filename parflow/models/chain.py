@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import velocity_gradient
+from ..observables import stress
 from ..state import Bonds, InputError, State
 
 FLOW = "extension"
@@ -66,8 +67,7 @@ def _dtheta(n: np.ndarray) -> np.ndarray:
 
 def observables(state: State, F) -> dict:
     """<V^2> = |V_na|^2 / N, <Delta theta^2>, <thetadot^2> (thetadot of the total velocity)."""
-    N = state.n
-    V2 = float(np.einsum("id,id->", F.V_na, F.V_na)) / N
+    V2 = stress.V2(F.V_na)
     bd = state.bonds
     dV = F.r @ state.E.T + F.V_na[bd.j] - F.V_na[bd.i]         # relative velocity of rod ends
     thetadot = (F.n[:, 0] * dV[:, 1] - F.n[:, 1] * dV[:, 0]) / F.ell
