@@ -4,7 +4,8 @@
 #   make test                       pytest serial, then under mpirun -n 2; fails if either fails
 #   make run [SCENE=x.toml] [ARGS=...] [NP=2]
 #                                   mpirun -n $(NP) python -m parflow.shear $(SCENE) $(ARGS)
-#                                   (ARGS defaults to --overwrite: make run can be repeated)
+#                                   (ARGS defaults to --overwrite: make run can be repeated;
+#                                   Ctrl-C / kill stop it with a checkpoint: docs/output.md "Signals")
 #   make bench                      every benchmarks/bench_*.py with the venv python
 #   make clean                      remove .venv and caches (not out/ or runs/)
 
@@ -53,8 +54,11 @@ test-mpi: $(STAMP)
 	$(ENV) mpirun -n $(NP) $(PY) -m pytest -p no:cacheprovider \
 	  --color=$$([ -t 1 ] && echo yes || echo no) tests $(PYTEST_ARGS)
 
+# scripts/mpirun-parflow: mpirun that relays SIGTERM / Ctrl-C to the ranks, which end the step
+# under way, write a checkpoint and exit 143 / 130 (bare mpirun would kill them after 1 s).
+# exec: make sends SIGTERM to its child, which must be the launcher, not an intermediate shell.
 run: $(STAMP)
-	$(ENV) mpirun -n $(NP) $(PY) -m parflow.shear $(SCENE) $(ARGS)
+	$(ENV) exec scripts/mpirun-parflow -n $(NP) $(PY) -m parflow.shear $(SCENE) $(ARGS)
 
 bench: $(STAMP)
 	@$(ENV) shopt -s nullglob; files=(benchmarks/bench_*.py); \

@@ -94,7 +94,12 @@ def run_main(prog: str, body) -> int:
 
     import threading
     if threading.current_thread() is threading.main_thread():   # (signals: main thread only)
+        # SIGUSR1 / SIGUSR2 stand for SIGTERM / SIGINT: Open MPI's mpirun relays them to every
+        # rank at once (SIGTERM and SIGINT it does not relay, it kills the ranks; docs/output.md
+        # "Signals", scripts/mpirun-parflow).
         signal.signal(signal.SIGTERM, lambda signum, frame: STOPS.handle(2))
+        signal.signal(signal.SIGUSR1, lambda signum, frame: STOPS.handle(2))
+        signal.signal(signal.SIGUSR2, lambda signum, frame: STOPS.handle(1))
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored (`&`)
             signal.signal(signal.SIGINT, lambda signum, frame: STOPS.handle(1))
     try:
