@@ -39,7 +39,8 @@ class StopSignals:
         self.pending = 0
 
     def _exception(self, code: int, mid_step: bool, collective: bool) -> BaseException:
-        exc = self.CODES[code](f"signal {'SIGINT' if code == 1 else 'SIGTERM'}")
+        # SIGUSR2/SIGUSR1 stand for SIGINT/SIGTERM under mpirun, which forwards only those
+        exc = self.CODES[code]("signal SIGINT (or SIGUSR2)" if code == 1 else "signal SIGTERM (or SIGUSR1)")
         exc.mid_step, exc.collective = mid_step, collective
         return exc
 

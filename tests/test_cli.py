@@ -144,9 +144,9 @@ def test_two_rank_run_completes(tmp_path):
         assert f.attrs["n_ranks"] == 2 and f.attrs["status"] == "complete"
 
 
-def _signal_mid_run(tmp_path, sig, mpi=0):
-    """Start a long chain run (on ``mpi`` ranks through mpirun if given), send ``sig`` once it
-    has flushed a few rows; returns (exit code, stderr, output path)."""
+def _signal_mid_run(tmp_path, sig):
+    """Start a long serial chain run, send ``sig`` once it has flushed a few rows; returns
+    (exit code, stderr, output path)."""
     import time
     out = tmp_path / "o.h5"
     text = GOOD.replace("N = 50", "N = 3000").replace("V2_above = 100.0", "V2_above = 1e12") + \
@@ -154,11 +154,6 @@ def _signal_mid_run(tmp_path, sig, mpi=0):
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     cmd = [sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
            "--output", str(out), "--quiet", "--no-plots"]
-    if mpi:
-        cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
-        # mpirun, signalled, sends its ranks SIGCONT, SIGTERM and SIGKILL this many seconds
-        # apart (default 1): the grace to end the step and write the checkpoint (README)
-        env["OMPI_MCA_odls_base_sigkill_timeout"] = "5"
     proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 60
@@ -187,16 +182,16 @@ def test_killed_run_leaves_a_readable_file(tmp_path):
         assert n > 5 and all(f["timeseries"][k].shape == (n,) for k in f["timeseries"])
 
 
-@pytest.mark.parametrize("name, mpi", [("SIGTERM", 0), ("SIGTERM", 2), ("SIGINT", 0)])
-def test_signal_stops_with_checkpoint_and_status(tmp_path, name, mpi):
-    """SIGTERM (kill, a scheduler's time limit; mpirun passes it to every rank) or Ctrl-C:
-    exit 143 / 130, status 'interrupted', a checkpoint at the end of the last whole step,
-    which is the last time-series row; the run continues from it with --restart."""
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGINT"])
+def test_signal_stops_with_checkpoint_and_status(tmp_path, name):
+    """SIGTERM (kill, a scheduler's time limit) or Ctrl-C on a serial run: exit 143 / 130,
+    status 'interrupted', a checkpoint at the end of the last whole step, which is the last
+    time-series row; the run continues from it with --restart.  (Under mpirun, which does
+    not pass SIGTERM/SIGINT on to its ranks: tests/test_signals.py.)"""
     import signal
-    code, err, out = _signal_mid_run(tmp_path, getattr(signal, name), mpi)
+    code, err, out = _signal_mid_run(tmp_path, getattr(signal, name))
     word, exit_code = ("terminated", 143) if name == "SIGTERM" else ("interrupted", 130)
-    # mpirun, itself signalled, exits 1 whatever its ranks return
-    assert code == (1 if mpi else exit_code) and err.count(word) == 1, err
+    assert code == exit_code and err.count(word) == 1, err
     with h5py.File(out) as f:
         assert f.attrs["status"] == "interrupted" and "--restart" in f.attrs["message"]
         n = f["timeseries/step"].shape[0]
