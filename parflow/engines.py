@@ -149,6 +149,10 @@ class ContactForce:
     f: np.ndarray        # contact forces (>= 0, compressive)
     V_na: np.ndarray     # (N, d)
     sigma: float
+    # -<f|h>/dg / Omega of the step these forces are for, so that sigma = sigma_fb + gap_work
+    # (complementarity of the LCP with q = b + h/dg, DESIGN §5): at the first row, before any
+    # step, it is that of the step probe() solved for (the first step's), not zero
+    gap_work: float = 0.0
 
 
 class ContactEngine:
@@ -206,7 +210,8 @@ class ContactEngine:
                 if dg < sim.dg_min:
                     raise
         sigma = float(np.einsum("id,id->", V, V)) / sim.omega
-        return ContactForce(st.gamma, st.h, c, f, V, sigma)
+        gap_work = -float(f @ c.gap) / dg / sim.omega
+        return ContactForce(st.gamma, st.h, c, f, V, sigma, gap_work)
 
     def start(self):
         self.F = self.probe(+1)
@@ -226,7 +231,8 @@ class ContactEngine:
         finally:
             sim.dg_max = keep
         st = sim.state
-        self.F = ContactForce(st.gamma, st.h, sim.last_c, sim.last_f, sim.last_V, self.stats.sigma)
+        self.F = ContactForce(st.gamma, st.h, sim.last_c, sim.last_f, sim.last_V, self.stats.sigma,
+                              self.stats.gap_work)
         return st.gamma - g0
 
     def observe(self) -> dict:
@@ -243,9 +249,12 @@ class ContactEngine:
     def row(self) -> dict:
         st = self.stats
         if st is None:
+            # the first row, before any step: sigma and sigma_fb are those of the forces
+            # probe() solved for the first step, and so is the gap work (sigma = sigma_fb +
+            # gap_work holds on this row too); dgamma = 0: no strain has been applied yet
             return dict(dgamma=0.0, n_candidates=len(self.F.c), n_active=int(np.count_nonzero(self.F.f > 0)),
                         n_new=0, n_coll=0, overlap=0.0, lcp_iterations=0, factorizations=0,
-                        singular=0, min_w=0.0, gap_work=0.0,
+                        singular=0, min_w=0.0, gap_work=self.F.gap_work,
                         t_search=0.0, t_lcp=0.0, t_update=0.0)
         return dict(dgamma=self._direction * st.dgamma, n_candidates=st.n_candidates,
                     n_active=st.n_active, n_new=st.n_new, n_coll=st.n_coll, overlap=st.overlap,
