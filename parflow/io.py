@@ -168,22 +168,59 @@ def _attr(v):
     return v.replace("\x00", "") if isinstance(v, str) else v
 
 
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _hdf5_signature(path: str, size: int) -> bool:
+    """Whether the HDF5 superblock signature is where the format puts it: at byte 0, or
+    after a user block of 512, 1024, 2048, ... bytes."""
+    with open(path, "rb") as fh:
+        offset = 0
+        while offset + len(HDF5_SIGNATURE) <= size:
+            fh.seek(offset)
+            if fh.read(len(HDF5_SIGNATURE)) == HDF5_SIGNATURE:
+                return True
+            offset = 512 if offset == 0 else 2 * offset
+    return False
+
+
 def open_hdf5(path: str) -> h5py.File:
-    """Open an HDF5 file read-only, with a clear error if it is missing or not HDF5."""
+    """Open an HDF5 file read-only, with a clear error if it is missing, unreadable, not
+    HDF5 at all, or an HDF5 file that is cut short or damaged (a copy that did not finish,
+    a full disk)."""
+    import re
+    if os.path.isdir(path):
+        raise InputError(f"{path!r} is a directory, not an HDF5 file")
     if not os.path.isfile(path):
         raise InputError(f"{path!r} does not exist")
     try:
+        size = os.path.getsize(path)
+        signed = _hdf5_signature(path, size)
+    except OSError as exc:
+        raise InputError(f"cannot read {path!r}: {exc.strerror or exc}") from None
+    if not signed:
+        raise InputError(f"{path!r} is not an HDF5 file ({size} bytes, no HDF5 signature)")
+    try:
         return h5py.File(path, "r")
-    except OSError:
-        raise InputError(f"{path!r} is not an HDF5 file") from None
+    except OSError as exc:
+        text = str(exc)
+        m = re.search(r"stored_eof\s*=\s*(\d+)", text)
+        whole = f" of its {int(m.group(1))}" if m else ""
+        why = "truncated" if "truncated" in text else "damaged or truncated"
+        raise InputError(f"{path!r} is a {why} HDF5 file ({size} bytes{whole}): it cannot be "
+                         f"read; restore it from a copy") from None
 
 
 def read_run(path: str) -> h5py.File:
     """Open a parflow run file read-only, with a clear error if it is not one."""
     f = open_hdf5(path)
-    if f.attrs.get("format") != FORMAT:
+    fmt = f.attrs.get("format")
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode(errors="replace")
+    if fmt != FORMAT:
         f.close()
-        raise InputError(f"{path!r} is not a parflow run file (format attribute missing)")
+        why = "format attribute missing" if fmt is None else f"format {fmt!r}, not {FORMAT!r}"
+        raise InputError(f"{path!r} is not a parflow run file ({why})")
     return f
 
 

@@ -60,7 +60,9 @@ def _read(path):
 
 
 def _branch(src: str, dst: str, overwrite: bool) -> int:
-    """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint)."""
+    """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint).
+    ``src`` was checked by ``_restart_scene``; it is only read.  ``dst`` appears complete
+    or not at all."""
     import shutil
 
     from .io import check_output_path
@@ -70,24 +72,42 @@ def _branch(src: str, dst: str, overwrite: bool) -> int:
                          "drop --output; to branch it, give a new file")
     check_output_path(dst, overwrite)
     tmp = dst + ".tmp"
-    shutil.copyfile(src, tmp)
-    import h5py
-    with h5py.File(tmp, "a") as f:
-        step = int(f["checkpoint"].attrs["step"])
-        f.attrs["branched_from"] = f"{os.path.abspath(src)} at step {step}"
-    os.replace(tmp, dst)
+    try:
+        shutil.copyfile(src, tmp)
+        import h5py
+        with h5py.File(tmp, "a") as f:
+            step = int(f["checkpoint"].attrs["step"])
+            f.attrs["branched_from"] = f"{os.path.abspath(src)} at step {step}"
+        os.replace(tmp, dst)
+    except OSError as exc:
+        raise InputError(f"cannot write the branch {dst!r}: {exc.strerror or exc}; "
+                         f"{src!r} was not changed") from None
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
     return step
 
 
 def _restart_scene(path):
+    """The scene text and stored settings of the run file ``path``, after checking that its
+    checkpoint can be restarted from (``run.check_checkpoint``): a hostile or damaged file
+    is refused here, before the restart (or a branch) touches anything."""
     from .io import read_run
+    from .run import check_checkpoint
+    from .scene import load_scene
+    from .state import InputError
     f = read_run(path)
     try:
         if "checkpoint" not in f:
-            from .state import InputError
-            raise InputError(f"{path!r} has no checkpoint: it cannot be restarted")
+            raise InputError(f"{path!r} has no checkpoint: it cannot be restarted; the file was not changed")
+        text = f.attrs.get("scene")
+        if not isinstance(text, str) or not text:
+            raise InputError(f"{path!r} has no scene attribute: it cannot be restarted; "
+                             f"the file was not changed")
+        scene = load_scene(text, path)
+        check_checkpoint(f, path, len(scene["protocol"]["leg"]), scene["model"]["name"])
         settings = str(f.attrs.get("scene_settings", ""))
-        return str(f.attrs["scene"]), [s for s in settings.split("\n") if s]
+        return text, [s for s in settings.split("\n") if s]
     finally:
         f.close()
 
