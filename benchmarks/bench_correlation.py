@@ -59,7 +59,7 @@ def run_file_systems(path: str):
     petsc4py.init(sys.argv[:1])
     from petsc4py import PETSc
     from parflow.state import Bonds, State
-    from parflow.system import BondedSystem
+    from parflow.dynamics.bonded import BondedSystem
     out = []
     with h5py.File(path, "r") as f:
         g, b = f["initial"], f["initial/bonds"]

@@ -32,7 +32,7 @@ def record(path: str, steps: int) -> tuple[list, dict]:
     from petsc4py import PETSc
 
     import parflow.suspension as su
-    from parflow.engines import make_engine
+    from parflow.dynamics.engines import make_engine
     from parflow.io import read_run
     from parflow.run import Run
     from parflow.scene import load_scene

@@ -17,8 +17,8 @@ from petsc4py import PETSc
 
 from . import __version__
 from .cli import collective
-from .engines import _at, make_engine  # noqa: F401  (_at: used by tests and analyses)
-from .integrate import Jammed, StepControl
+from .dynamics.engines import _at, make_engine  # noqa: F401  (_at: used by tests and analyses)
+from .dynamics.heun import Jammed, StepControl
 from .io import RunWriter, load_group, read_run
 from .models import get_model
 from .solvers import SolveError, unused_options

@@ -10,10 +10,10 @@ import difflib
 import math
 import tomllib
 
-from .integrate import CONTROLLERS, StepControl
+from .dynamics.heun import CONTROLLERS, StepControl
 from .models import MODELS, get_model
 from .solvers import PARALLEL_FACTORS, PRESETS
-from .system import REUSE_FACTOR
+from .dynamics.bonded import REUSE_FACTOR
 from .state import InputError
 
 DEFAULT_SCENE = """\

@@ -101,7 +101,7 @@ def compute(comm, state: State, method: str, k: int = 6, interval=(0.0, None),
             parallel: str = "auto", vectors: bool = False) -> dict:
     """The spectrum of the state's N (collective).  Returns dict(omega, [modes], info...)."""
     from .spectrum import LowSpectrum, omega_from_lambda
-    from .system import BondedSystem
+    from .dynamics.bonded import BondedSystem
     nc = len(state.bonds)
     t0 = time.perf_counter()
     if method == "dense":

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from parflow.integrate import Heun, Jammed, StepControl
+from parflow.dynamics.heun import Heun, Jammed, StepControl
 from parflow.models import chain
 from parflow.scene import load_scene
-from parflow.system import BondedSystem
+from parflow.dynamics.bonded import BondedSystem
 from systems import run_scene
 
 

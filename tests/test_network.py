@@ -14,14 +14,14 @@ from parflow import geometry
 from parflow.observables import correlation as corr
 from parflow.observables import response as resp
 from parflow.geometry import pair_geometry
-from parflow.integrate import Heun, StepControl
+from parflow.dynamics.heun import Heun, StepControl
 from parflow.models import network as nw
 from parflow.models import network_build as nb
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
 from parflow.state import Bonds, InputError, State
 from parflow.solvers import SingularOperator
-from parflow.system import BondedSystem
+from parflow.dynamics.bonded import BondedSystem
 from systems import dense_operators
 
 PARAMS = dict(N=128, z=3.8, phi=0.88)

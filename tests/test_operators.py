@@ -7,7 +7,7 @@ from petsc4py import PETSc
 
 from parflow.geometry import cell_at, pair_geometry, velocity_gradient
 from parflow.solvers import SingularOperator
-from parflow.system import BondedSystem
+from parflow.dynamics.bonded import BondedSystem
 from parflow.state import Bonds, InputError, State
 
 from systems import dense_operators, local_rows_dense, random_bonded_state

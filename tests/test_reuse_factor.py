@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from parflow import system as sy
-from parflow.integrate import Heun, StepControl
+from parflow.dynamics import bonded as sy
+from parflow.dynamics.heun import Heun, StepControl
 from parflow.models import network as nw
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
 from parflow.state import InputError
-from parflow.system import BondedSystem, resolve_reuse
+from parflow.dynamics.bonded import BondedSystem, resolve_reuse
 
 
 @pytest.fixture(scope="module")

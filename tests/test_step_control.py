@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from parflow.integrate import Heun, StepControl
+from parflow.dynamics.heun import Heun, StepControl
 from parflow.run import Run, setup_logging
 from parflow.scene import apply_settings, load_scene
 from parflow.state import InputError

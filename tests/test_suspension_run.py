@@ -12,7 +12,7 @@ from parflow.models import chain
 from parflow.models import suspension as msu
 from parflow.scene import load_scene
 from parflow.state import InputError
-from parflow.system import BondedSystem
+from parflow.dynamics.bonded import BondedSystem
 from systems import run_scene
 
 
@@ -147,7 +147,7 @@ def test_delta_gamma_finds_the_chain_jamming_strain():
 
 def test_freeze_keeps_force_bearing_contacts():
     from parflow import suspension as su
-    from parflow.engines import ContactEngine
+    from parflow.dynamics.engines import ContactEngine
     state = su.make_suspension(128, 0.80, seed=2)
     state.meta.update(msu.controls({}))
     scene = load_scene('[model]\nname = "suspension"\nN = 128\n[[protocol.leg]]\n'

@@ -41,7 +41,7 @@ FLOW = "shear"
 Z_RANGE = (3.5, 3.98)
 DENSE_MAX = 10_000
 # the force solve at the end of a step may reuse the step's factor (solver.reuse_factor =
-# "auto" above system.REUSE_AUTO_MIN_NC rods): a 2D network's factor costs ~20-30 solves
+# "auto" above dynamics.bonded.REUSE_AUTO_MIN_NC rods): a 2D network's factor costs ~20-30 solves
 FACTOR_REUSE = True
 SPECTRA = ("none", "dense", "low", "auto")
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .solvers import SingularOperator
+from ..solvers import SingularOperator
 
 
 CONTROLLERS = ("I", "PI")
@@ -51,7 +51,7 @@ class StepControl:
     controller: str = "I"
 
     def validate(self):
-        from .state import InputError
+        from ..state import InputError
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",
                      "length_tol"):
             v = getattr(self, name)

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import cell_at, pair_geometry
-from .observables import stress
-from .operators import RigidityOperators
-from .solvers import CholeskySolver, SingularOperator, SolveInfo, resolve_parallel
-from .state import State
+from ..geometry import cell_at, pair_geometry
+from ..observables import stress
+from ..operators import RigidityOperators
+from ..solvers import CholeskySolver, SingularOperator, SolveInfo, resolve_parallel
+from ..state import State
 
 
 @dataclass

@@ -4,8 +4,8 @@ The driver (legs, stop rules, output, checkpoints, progress, analyses schedule) 
 for every model; an engine owns the physics of a step:
 
 * :class:`BondedEngine` -- persistent rods (chain, network): Heun with error control and
-  projection on the rod lengths (``integrate.Heun``), forces from N tau = -b
-  (``system.BondedSystem``).
+  projection on the rod lengths (``dynamics.heun.Heun``), forces from N tau = -b
+  (``dynamics.bonded.BondedSystem``).
 * :class:`ContactEngine` -- hard-disc suspension: contacts found anew every step, forces
   from the contact LCP, conservative no-overlap step (``parflow.suspension.Suspension``).
 
@@ -20,9 +20,9 @@ import dataclasses
 
 import numpy as np
 
-from .integrate import Heun, Jammed, StepControl
-from .state import Bonds, InputError, State
-from .system import BondedSystem, resolve_reuse
+from .heun import Heun, Jammed, StepControl
+from ..state import Bonds, InputError, State
+from .bonded import BondedSystem, resolve_reuse
 
 
 def _at(state: State, s: np.ndarray, gamma: float) -> State:
@@ -104,7 +104,7 @@ class BondedEngine:
                     length_error=res.length_error, proj_iter=res.proj_iter)
 
     def omega_min(self) -> float:
-        from .spectrum import LowSpectrum, omega_from_lambda
+        from ..spectrum import LowSpectrum, omega_from_lambda
         self.system.sync()
         if self._spec is None:
             # shift-and-invert at 0 on the force solver's factor of N (already up to date)
@@ -161,7 +161,7 @@ class ContactEngine:
     kind = "contacts"
 
     def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
-        from . import suspension as su
+        from .. import suspension as su
         self.comm, self.state, self.model, self.scene = comm, state, model, scene
         self.su = su
         if ck is None:

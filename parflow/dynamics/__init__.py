@@ -1,0 +1,6 @@
+"""What one strain step is.
+
+* :mod:`.bonded`  -- BondedSystem: geometry -> S, N -> N tau = -b -> V_na (rods)
+* :mod:`.heun`    -- StepControl and the Heun integrator with projection on the rod lengths
+* :mod:`.engines` -- the engines the run loop drives (bonded models, hard-disc contacts)
+"""
