@@ -35,7 +35,7 @@ from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models import chain  # noqa: E402
 from parflow.solvers import configure_cholesky  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402
-from parflow.dynamics.bonded import BondedSystem  # noqa: E402
+from parflow.system import BondedSystem  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
 
@@ -46,7 +46,7 @@ def chain_state(nc: int) -> State:
 
 def network_state(n: int, z: float = 3.8) -> tuple[State, dict]:
     from parflow.models.network_build import network_from_packing
-    from parflow.models.packing import make_packing
+    from parflow.packing.fire import make_packing
     t = time.perf_counter()
     pk = make_packing(n, phi=0.88, seed=1)
     net = network_from_packing(pk, z, seed=1, check_self_stress=False)

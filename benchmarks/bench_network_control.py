@@ -85,7 +85,7 @@ def main():
     ap.add_argument("--n", type=int, default=4096)
     args = ap.parse_args()
     from parflow.models.network_build import network_from_packing, save_network
-    from parflow.models.packing import make_packing
+    from parflow.packing.fire import make_packing
     with tempfile.TemporaryDirectory() as tmp:
         network = os.path.join(tmp, "net.h5")
         pk = make_packing(args.n, phi=0.88, seed=1)

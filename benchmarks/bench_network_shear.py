@@ -98,7 +98,7 @@ def main():
     network = os.path.join(args.folder, f"network_N{args.n}.h5")
     if rank == 0 and not os.path.exists(network):
         from parflow.models.network_build import network_from_packing, save_network
-        from parflow.models.packing import make_packing
+        from parflow.packing.fire import make_packing
         t = time.perf_counter()
         save_network(network, network_from_packing(make_packing(args.n, phi=0.88, seed=1), 3.8, seed=1))
         print(f"network N = {args.n}: {time.perf_counter() - t:.1f} s", flush=True)

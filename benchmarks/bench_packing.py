@@ -5,12 +5,19 @@
     python benchmarks/bench_packing.py --large                      # adds N = 10^6
     python benchmarks/bench_packing.py --sizes 1000000 --kernel numba --threads 1 --append \
         --save-network out/network_N1e6_z3.8.h5 --progress out/bench_packing_1e6.log
+    python benchmarks/bench_packing.py --passes                     # 2D vs nD passes, N = 40 000
 
 Each N runs in a fresh subprocess so that its peak RSS (resource.getrusage ru_maxrss) is
 its own.  Results (N, FIRE iterations, seconds wall and CPU, peak RSS, z0, z, ...) go to
 docs/benchmarks/packing.json (rewritten after every run; --append keeps earlier
 results; the load average is recorded because
 the machine may be shared: CPU seconds are the steadier number).
+
+--passes [N] times each d = 2 pass of the compiled kernel (parflow/packing/pairs_numba.py)
+against its nD twin on one random state of N (default 40 000) discs at --phi, one
+numba thread, CPU milliseconds per call (min and median over rounds), checks that both give
+the same bits, and prints the table (nothing written): the measurement that decides which
+2D passes are kept.
 """
 from __future__ import annotations
 
@@ -33,7 +40,7 @@ def one(n: int, phi: float, z: float, seed: int, kernel: str, threads: int | Non
     import numpy as np
     import scipy
     from parflow.models import network_build as nb
-    from parflow.models import packing as pk
+    from parflow.packing import fire as pk
 
     trace = _Progress(progress, n) if progress else None
     load0 = os.getloadavg()
@@ -70,6 +77,89 @@ def one(n: int, phi: float, z: float, seed: int, kernel: str, threads: int | Non
         git_commit=_git_commit(),
         **({"network_file": save_network} if save_network else {}),
     )
+
+
+def passes(n: int, phi: float, seed: int, rounds: int = 9) -> list[tuple]:
+    """(pass, 2D ms, nD ms, same bits) per pass; see the module docstring (--passes)."""
+    sys.path.insert(0, str(ROOT))
+    import numpy as np
+    from parflow.packing import fire, pairs
+    nbk = pairs.numba_kernels()
+    rng = np.random.default_rng(seed)
+    radii = fire.binary_radii(n, rng=rng)
+    box = np.full(2, fire.box_side(radii, phi, 2))
+    s = rng.random((n, 2))
+    order = fire.morton_order(s)
+    s, radii = s[order], radii[order]
+    X = np.ascontiguousarray((s * box).T)
+    old = nbk.set_threads(1)
+    half = pairs.pair_list(radii, box, 0.4, "numba", 1)
+    Xh = half.build(X.copy())
+    full = pairs.pair_list(radii, box, 0.4, "numba", 1)
+    full.full = True                             # the gather's full list, run on one thread
+    Xf = full.build(X.copy())
+    V = 0.01 * (rng.random(Xh.shape) - 0.5)
+    F = np.empty_like(Xh)
+    w, wf = half._work, full._work
+    nc = np.maximum(np.floor(box / (half.cut * (1.0 + 1e-8))), 1).astype(np.int64)
+    sw, ss = np.empty_like(Xh), np.empty_like(Xh)
+    nbk._wrap(Xh, box, sw, ss)
+    cell, start, members, table = nbk._cells(ss, nc, True)
+    cnt, ptr = np.empty(n, np.int64), half.indptr.copy()
+    nbr, none = np.empty(int(ptr[-1]), np.int32), np.empty(0, np.int32)
+    Xu, Vu = Xh.copy(), V.copy()
+
+    def search(fn, arg):
+        def run():
+            fn(sw, radii, box, 0.4, cell, start, members, arg, False, ptr, none, cnt)
+            fn(sw, radii, box, 0.4, cell, start, members, arg, False, ptr, nbr, cnt)
+        return run
+
+    def update(fn):
+        return lambda: fn(Xu, Vu, F, 1e-6, 5e-7, False, True, 0.9, 0.01, w.part1)
+
+    cases = [
+        ("cell search (count + fill)", search(nbk._search2, nc), search(nbk._search, table),
+         lambda: (nbr.copy(), cnt.copy())),
+        ("step, pair loop (half list)",
+         lambda: nbk._step2_scatter(Xh, V, F, radii, half.hptr, half.rows, half.nbr, box, 0.1,
+                                    w.part, w.tx, w.ty, w.ts),
+         lambda: nbk._step_nd_scatter(Xh, V, F, radii, half.indptr, half.nbr, box, 0.1, w.part,
+                                      False),
+         lambda: (F.copy(), w.part.copy())),
+        ("step, gather (full list)",
+         lambda: nbk._step2_gather(Xf, V, F, radii, full.indptr, full.rows, full.nbr, box, 0.1,
+                                   wf.part, wf.scratch),
+         lambda: nbk._step_nd_gather(Xf, V, F, radii, full.indptr, full.nbr, box, 0.1, wf.part,
+                                     True),
+         lambda: (F.copy(), wf.part.copy())),
+        ("update", update(nbk._update2), update(nbk._update), lambda: (w.part1.copy(),)),
+    ]
+    rows = []
+    try:
+        for name, f2, fn, result in cases:
+            out = []
+            for f in (f2, fn):
+                Xu[:], Vu[:] = Xh, V                 # the update works in place: same start
+                f()
+                out.append(result() + (Xu.copy(), Vu.copy()))
+            same = all(np.array_equal(x, y) for x, y in zip(*out))
+            rows.append((name, _times(f2, rounds), _times(fn, rounds), same))
+    finally:
+        nbk.set_threads(old)
+    return rows
+
+
+def _times(fn, rounds: int, inner: int = 5):
+    """(min, median) CPU milliseconds per call of fn over ``rounds`` rounds."""
+    import numpy as np
+    t = []
+    for _ in range(rounds):
+        c0 = time.process_time()
+        for _ in range(inner):
+            fn()
+        t.append((time.process_time() - c0) / inner * 1e3)
+    return float(np.min(t)), float(np.median(t))
 
 
 def _label(kernel, threads):
@@ -130,8 +220,18 @@ def main(argv=None):
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "packing.json"))
     ap.add_argument("--append", action="store_true",
                     help="keep the results already in --out and add these")
+    ap.add_argument("--passes", type=int, nargs="?", const=40000, metavar="N",
+                    help="time the 2D passes of the compiled kernel against the nD ones on N "
+                         "discs (default 40 000)")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.passes:
+        n = a.passes
+        print(f"N = {n}, phi = {a.phi}, one numba thread: CPU ms per call (min / median)")
+        for name, t2, tn, same in passes(n, a.phi, a.seed):
+            print(f"  {name:28s} 2D {t2[0]:7.3f} / {t2[1]:7.3f}   nD {tn[0]:7.3f} / {tn[1]:7.3f}"
+                  f"   nD/2D {tn[0] / t2[0]:4.2f}   same bits: {same}")
+        return 0
     if a.one:
         print(json.dumps(one(a.one, a.phi, a.z, a.seed, a.kernel[0], a.threads,
                              a.save_network, a.progress)))

@@ -52,7 +52,7 @@ def compress(X: np.ndarray, radii: np.ndarray, box: np.ndarray, phi: float,
     overlaps.  Returns (positions, box, info).  InputError if phi is not above the current
     packing fraction, or if the compressed state does not relax (it is jammed at phi)."""
     from . import suspension as su
-    from .models import packing as pk
+    from .packing.pairs import pair_list
     su.check_phi(phi)
     phi0 = float(np.pi * np.sum(radii ** 2) / np.prod(box))
     if not phi > phi0:
@@ -61,7 +61,7 @@ def compress(X: np.ndarray, radii: np.ndarray, box: np.ndarray, phi: float,
     scale = np.sqrt(phi0 / phi)
     box1 = box * scale
     X1 = np.ascontiguousarray((X * scale).T)
-    pl = pk._PairList(radii * (1.0 + inflate), box1, 0.4, "auto")
+    pl = pair_list(radii * (1.0 + inflate), box1, 0.4, "auto")
     X1, n_overlap, info = su.relax_overlaps(X1, radii, pl, max_iter)
     if n_overlap != 0:
         left = "FIRE did not converge" if n_overlap < 0 else f"{n_overlap} overlapping pairs"

@@ -45,11 +45,12 @@ import numpy as np
 
 from .contacts import FACTORS, LCPFailure, LCPInfo, rigidity, solve_lcp  # noqa: F401
 from .geometry import Candidates, cell_at, find_candidates, velocity_gradient
+from .packing.fire import fire_minimize, remove_rattlers
+from .packing.mixture import PHI_J_2D as PHI_J  # the 2D phi_J (shear jamming of the mixture)
+from .packing.mixture import RADIUS_RATIO, binary_radii, check_mixture, check_phi
+from .packing.pairs import pair_list, wrap01
 from .state import InputError, State
 
-PHI_J = 0.843              # shear-jamming packing fraction of the 50:50, 1.4 mixture (2D)
-SMALL_DIAMETER = 1.0
-RADIUS_RATIO = 1.4
 DEFAULT_SKIN = 0.3
 FIRST_DGAMMA = 1e-4
 # a step is at most this many times the last accepted one: after a step had to be cut
@@ -61,54 +62,17 @@ MAX_GROWTH = 4.0
 
 # =========================================================================== initial states
 
-def binary_radii(n: int, ratio: float = RADIUS_RATIO, composition=(0.5, 0.5),
-                 rng: np.random.Generator | None = None) -> np.ndarray:
-    """Radii of a binary mixture: small diameter 1, large diameter ``ratio``; ``composition``
-    = (fraction small, fraction large).  Randomly labelled if ``rng`` is given."""
-    check_mixture(ratio, composition)
-    n_small = int(round(n * composition[0]))
-    r = np.full(n, 0.5 * SMALL_DIAMETER * ratio)
-    r[:n_small] = 0.5 * SMALL_DIAMETER
-    if rng is not None:
-        r = r[rng.permutation(n)]
-    return r
-
-
-def check_mixture(ratio, composition) -> None:
-    if not (isinstance(ratio, (int, float, np.floating)) and math.isfinite(ratio)) or ratio <= 0:
-        raise InputError(f"suspension: radius ratio must be a finite number > 0, got {ratio!r}")
-    comp = np.asarray(composition, dtype=float)
-    if comp.shape != (2,) or np.any(~np.isfinite(comp)) or np.any(comp < 0):
-        raise InputError(f"suspension: composition must be two fractions >= 0 "
-                         f"(small, large), got {composition!r}")
-    if abs(comp.sum() - 1.0) > 1e-12:
-        raise InputError(f"suspension: composition fractions must sum to 1, got "
-                         f"{list(comp)} (sum {comp.sum():.6g})")
-
-
-def check_phi(phi) -> None:
-    if not (isinstance(phi, (int, float, np.floating)) and math.isfinite(phi)) or phi <= 0:
-        raise InputError(f"suspension: packing fraction phi must be a number > 0, got {phi!r}")
-    if phi >= PHI_J:
-        raise InputError(
-            f"suspension: phi = {phi:g} is at or above the jamming packing fraction "
-            f"phi_J ~ {PHI_J} of this mixture: hard discs there cannot flow (the stress is "
-            f"infinite; any non-overlapping configuration is jammed or nearly so). "
-            f"Use phi < {PHI_J} (the paper's range is 0.820-0.840)")
-
-
 def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_RATIO,
                     composition=(0.5, 0.5), inflate: float = 1e-6,
                     max_iter: int = 200_000, tries: int = 5) -> State:
     """Non-overlapping binary discs at packing fraction ``phi`` < phi_J in a square box.
 
-    Uniform random positions, then the soft-disc FIRE minimiser of ``models.packing`` with
+    Uniform random positions, then the soft-disc FIRE minimiser of ``packing.fire`` with
     radii inflated by (1 + ``inflate``) until no (inflated) pair overlaps: the true discs
     then have every gap >= inflate * (R_i + R_j) > 0, verified exactly afterwards.  If the
     minimiser ends in a jammed state (overlaps left: small N jams below phi_J), new random
     positions are drawn, up to ``tries`` times.
     """
-    from .models import packing as pk
     check_phi(phi)
     check_mixture(ratio, composition)
     if not isinstance(n, (int, np.integer)) or n < 16:
@@ -117,7 +81,7 @@ def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_
     radii = binary_radii(n, ratio, composition, rng)
     L = float((np.pi * np.sum(radii ** 2) / phi) ** 0.5)
     box = np.array([L, L])
-    pl = pk._PairList(radii * (1.0 + inflate), box, 0.4, "auto")
+    pl = pair_list(radii * (1.0 + inflate), box, 0.4, "auto")
     if L <= 2.0 * pl.cut:
         raise InputError(f"suspension: N = {n} gives a box of side {L:.3g}: too small, use more discs")
     for attempt in range(tries):
@@ -129,7 +93,7 @@ def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_
         raise InputError(f"suspension: no unjammed configuration of N = {n} discs at phi = {phi} "
                          f"in {tries} tries (small systems jam below phi_J ~ {PHI_J}: "
                          f"use more discs or a lower phi)")
-    s = pk._wrap01(X.T / box)
+    s = wrap01(X.T / box)
     h0 = np.diag(box)
     state = State(s, h0, velocity_gradient("shear", 2), 0.0, None, radii)
     state.meta.update(model="suspension", phi=float(np.pi * np.sum(radii ** 2) / L ** 2),
@@ -145,8 +109,7 @@ def relax_overlaps(X: np.ndarray, radii: np.ndarray, pl, max_iter: int):
     """FIRE from the (d, N) positions X on the pair list ``pl`` of the inflated radii, until
     no inflated pair overlaps.  Returns (X, number of pairs of true discs still overlapping --
     or -1 if FIRE did not converge --, FIRE info)."""
-    from .models import packing as pk
-    X, info = pk.fire_minimize(X, pl, 1e-12, max_iter=max_iter)
+    X, info = fire_minimize(X, pl, 1e-12, max_iter=max_iter)
     X = pl.build(X)
     _, r = pl.pair_vectors(X)
     n_overlap = int(np.count_nonzero(r < radii[pl.i] + radii[pl.j]))
@@ -405,7 +368,6 @@ def coordination(c: Candidates, f: np.ndarray, n_part: int, d: int = 2,
     its drag, so the jammed-packing definition of a rattler is fragile there; z_all is
     reported beside it, and z2: the same iterative removal with fewer than 2 contacts (a
     particle with one contact is not in force balance without drag)."""
-    from .models.packing import remove_rattlers
     fb = f > rel * (f.max() if f.size else 0.0)
     i, j = c.i[fb], c.j[fb]
     rattler, keep = remove_rattlers(n_part, i, j, d)

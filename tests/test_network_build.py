@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from parflow.models import network_build as nb
-from parflow.models import packing as pk
+from parflow.packing import fire as pk
 from parflow.state import Bonds, InputError
 
 

@@ -3,7 +3,7 @@
 
 Protocol
 --------
-1. A jammed soft-disc packing (``parflow.models.packing``); rattlers dropped, nodes
+1. A jammed soft-disc packing (``parflow.packing``); rattlers dropped, nodes
    renumbered (the packing's Morton order is kept, so neighbours stay close in memory).
 2. A rod on every contact, rest length l0 = its current length, computed exactly as the
    solver will: r = h0 (s_j + n - s_i) (so |r| == l0 to round-off, not to the packing's
@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..packing import fire as _pk
 from ..state import Bonds, InputError
-from . import packing as _pk
 
 FORMAT = "parflow-network"
 FORMAT_VERSION = 1

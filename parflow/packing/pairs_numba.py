@@ -78,7 +78,7 @@ def max_threads() -> int:
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def _wrap(X, box, Xw, s):  # pragma: no cover - compiled
-    """Xw = (X/L - floor(X/L)) L with 1 -> 0 (as packing._wrap01); s: reduced coords."""
+    """Xw = (X/L - floor(X/L)) L with 1 -> 0 (as pairs.wrap01); s: reduced coords."""
     d, n = X.shape
     for a in prange(n):
         for k in range(d):
