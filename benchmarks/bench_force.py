@@ -35,7 +35,7 @@ from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models import chain  # noqa: E402
 from parflow.solvers import configure_cholesky  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402
-from parflow.system import BondedSystem  # noqa: E402
+from parflow.dynamics.bonded import BondedSystem  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
 

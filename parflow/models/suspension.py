@@ -169,7 +169,7 @@ def freeze(state: State, F, rel: float = 1e-12) -> State:
 
 
 def _frozen_system(comm, frozen: State, scene: dict):
-    from ..system import BondedSystem
+    from ..dynamics.bonded import BondedSystem
     return BondedSystem(comm, frozen, scene["solver"]["preset"], scene["solver"]["parallel"])
 
 
@@ -200,7 +200,7 @@ def frozen_omega_min(comm, state: State, F, scene: dict) -> float:
 
 def _heun(system, scene: dict):
     """The step control of the scene's [integrator] and a Heun stepper on ``system``."""
-    from ..integrate import Heun, StepControl
+    from ..dynamics.heun import Heun, StepControl
     control = StepControl(**scene["integrator"])
     return control, Heun(system, control)
 
@@ -208,7 +208,7 @@ def _heun(system, scene: dict):
 def delta_gamma(system, frozen: State, F0, direction: int, scene: dict, factor: float,
                 max_strain: float, max_steps: int = 20_000) -> dict:
     """Shear the frozen network against ``direction`` until sigma >= factor * sigma_0."""
-    from ..integrate import Jammed
+    from ..dynamics.heun import Jammed
     control, integ = _heun(system, scene)
     s, g, F = frozen.s, frozen.gamma, F0
     sigma0 = F.sigma
@@ -248,7 +248,7 @@ def relaxation_rate(system, frozen: State, F0, direction: int, scene: dict,
     the derivative of the frozen network's sigma along the flow (``direction``) is the
     suspension's.  ``steps`` Heun steps of strain rel / sigma_0 each; the derivative at 0
     from a quadratic fit of sigma(x).  C = sigma_0^2 / (-dsigma/dgamma) (paper: constant)."""
-    from ..integrate import Jammed
+    from ..dynamics.heun import Jammed
     _, integ = _heun(system, scene)
     s, g, F = frozen.s, frozen.gamma, F0
     sigma0 = F.sigma
