@@ -79,6 +79,8 @@ def run_main(prog: str, body) -> int:
 
     InputError (collective by construction): one line on rank 0, exit 2.
     SolveError/Jammed raised collectively: one line, exit 1.
+    WriteError (the run file could not be written, e.g. a full disk; raised on every rank by
+    ``io.collective_write``): one line, exit 1.
     KeyboardInterrupt / SIGTERM (:class:`Terminated`): one line, exit 130 / 143 (a run takes
     the signal at the end of the step under way, on all ranks at once, and writes its
     checkpoint and status on the way out; a signal elsewhere, or a second one, aborts).
@@ -88,6 +90,7 @@ def run_main(prog: str, body) -> int:
 
     from mpi4py import MPI
 
+    from .io import WriteError
     from .solvers import SolveError
     from .state import STOPS, InputError, Terminated
     comm = MPI.COMM_WORLD
@@ -114,6 +117,11 @@ def run_main(prog: str, body) -> int:
     except SolveError as exc:
         if comm.rank == 0:
             print(f"{prog}: solver error: {exc}", file=sys.stderr)
+        _collective_cleanup()
+        return 1
+    except WriteError as exc:
+        if comm.rank == 0:
+            print(f"{prog}: write error: {exc}", file=sys.stderr)
         _collective_cleanup()
         return 1
     except (KeyboardInterrupt, Terminated) as exc:

@@ -19,7 +19,7 @@ from . import __version__
 from .cli import collective
 from .dynamics.engines import _at, make_engine  # noqa: F401  (_at: used by tests and analyses)
 from .dynamics.heun import Jammed, StepControl
-from .io import RunWriter, load_group, read_run
+from .io import RunWriter, WriteError, collective_write, load_group, read_run
 from .models import get_model
 from .solvers import SolveError, unused_options
 from .state import STOPS, Bonds, InputError, State, Terminated
@@ -160,7 +160,8 @@ class Run:
         unused = [o for o in unused_options() if not o.startswith(("spec_", "options_left"))]
         if unused:
             log.warning("WARNING: PETSc options set but not used: %s", ", ".join("-" + u for u in unused))
-        if self.rank == 0:
+
+        def start_file(writer):
             if ck is None:
                 attrs = dict(parflow_version=__version__, scene=scene["text"],
                              petsc_options="\n".join(f"-{k} {v}" for k, v in sorted(opts.items())),
@@ -177,6 +178,8 @@ class Run:
                                  restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                                  restart_git_commit=git_commit(),
                                  scene_settings="\n".join(scene.get("settings", [])))
+        # rank 0 writes; a failure there (full disk) is one WriteError on every rank
+        collective_write(comm, writer, start_file)
         log.info("%s: %s, %s, %d rank(s) (%s), solver %s%s", scene["model"]["name"],
                  scene["title"] or "untitled", eng.size_text(), comm.getSize(),
                  eng.parallel, solver_desc, f", restarting at step {step}" if ck else "")
@@ -209,6 +212,29 @@ class Run:
                              leg_steps=leg_steps, n_rows=rows_written, strain_mark=strain_mark,
                              level=-10**9 if level is None else level)
                 writer.set_checkpoint(arrays, attrs)
+
+        def failed(exc):
+            """The run stops on ``exc``: rank 0 writes the status, the reason, a checkpoint
+            at the last whole step (not after a second signal, nor when the file could not
+            be written: then only the status, if it fits) and removes the shadow file."""
+            nonlocal status, message
+            stopped = isinstance(exc, (KeyboardInterrupt, Terminated))
+            status = "interrupted" if stopped else "failed"
+            message = (f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, "
+                       f"sigma = {obs['sigma']:.4g})"
+                       + ("; continue with --restart" if stopped else ""))
+            mid_step = getattr(exc, "mid_step", False)
+            if mid_step:
+                message += " (second signal: stopped mid-step, no new checkpoint)"
+            if writer:
+                full = isinstance(exc, WriteError)   # the data did not fit: the status may
+                if not (full or mid_step):
+                    checkpoint()
+                lost = writer.close(data=not full, status=status, message=message, steps=step,
+                                    wall_seconds=time.monotonic() - t_start,
+                                    loadavg_end=np.array(os.getloadavg()), **eng.counters())
+                if lost and not full:        # (full: the WriteError's line says it)
+                    log.warning("WARNING: %s", lost)
 
         obs = eng.observe()
         leg_start_obs = dict(obs)
@@ -254,12 +280,15 @@ class Run:
                         writer.add_group(f"snapshots/{step:08d}", eng.snapshot(),
                                          dict(step=step, gamma=eng.gamma, sigma=obs["sigma"]))
                     now = time.monotonic()
-                    if step - last_ck_step >= scene["output"]["checkpoint_every"] or \
-                            now - last_ck_time >= 60 * scene["output"]["checkpoint_minutes"]:
+                    take = step - last_ck_step >= scene["output"]["checkpoint_every"] or \
+                        now - last_ck_time >= 60 * scene["output"]["checkpoint_minutes"]
+                    if take:
                         checkpoint()
                         last_ck_step, last_ck_time = step, now
-                    if writer and writer.due():
-                        writer.flush()
+                    # a checkpoint is on disk when it is taken: flushed with it (a flush costs
+                    # what it appends, docs/output.md "Faults"); on several ranks, one
+                    # broadcast per step carries a write failure on rank 0 to every rank
+                    collective_write(comm, writer, lambda w: w.flush() if take or w.due() else None)
                     if now - last_progress >= scene["output"]["progress_seconds"]:
                         last_progress = now
                         frac = leg.fraction(obs, leg_start_obs, leg_strain, leg_steps)
@@ -278,27 +307,18 @@ class Run:
                 eng.on_jammed()
                 self._analysis(writer, eng, step, strain, obs)
             except BaseException as exc:
-                stopped = isinstance(exc, (KeyboardInterrupt, Terminated))
-                status = "interrupted" if stopped else "failed"
-                message = (f"{type(exc).__name__}: {exc} (step {step}, gamma = {eng.gamma:.10g}, "
-                           f"sigma = {obs['sigma']:.4g})"
-                           + ("; continue with --restart" if stopped else ""))
-                if getattr(exc, "mid_step", False):
-                    message += " (second signal: stopped mid-step, no new checkpoint)"
+                failed(exc)
+                raise
+            try:              # the last write, still deferring signals
+                checkpoint()
                 if writer:
-                    if not getattr(exc, "mid_step", False):
-                        checkpoint()
                     writer.set_attrs(status=status, message=message, steps=step,
                                      wall_seconds=time.monotonic() - t_start,
                                      loadavg_end=np.array(os.getloadavg()), **eng.counters())
-                    writer.flush()
+                collective_write(comm, writer, lambda w: w.flush(final=True))
+            except BaseException as exc:
+                failed(exc)
                 raise
-        checkpoint()
-        if writer:
-            writer.set_attrs(status=status, message=message, steps=step,
-                             wall_seconds=time.monotonic() - t_start,
-                             loadavg_end=np.array(os.getloadavg()), **eng.counters())
-            writer.flush()
         log.info("%s: %s; %d steps, %.1f s; wrote %s", status, message, step,
                  time.monotonic() - t_start, self.path)
         eng.destroy()
