@@ -31,7 +31,7 @@ def record(path: str, steps: int) -> tuple[list, dict]:
     """The LCPs (S, q, warm, f) solved by ``steps`` steps from the checkpoint of ``path``."""
     from petsc4py import PETSc
 
-    import parflow.suspension as su
+    import parflow.dynamics.hard_discs as su
     from parflow.dynamics.engines import make_engine
     from parflow.io import read_run
     from parflow.run import Run
@@ -65,7 +65,7 @@ def record(path: str, steps: int) -> tuple[list, dict]:
 
 
 def measure(instances: list, max_border: int) -> dict:
-    import parflow.contacts as co
+    import parflow.dynamics.lcp as co
 
     init = co.ActiveSolver.__init__
 

@@ -51,7 +51,7 @@ def compress(X: np.ndarray, radii: np.ndarray, box: np.ndarray, phi: float,
     packing fraction ``phi`` and relaxed until no pair of discs inflated by (1 + inflate)
     overlaps.  Returns (positions, box, info).  InputError if phi is not above the current
     packing fraction, or if the compressed state does not relax (it is jammed at phi)."""
-    from . import suspension as su
+    from .models import suspension as su
     from .packing.pairs import pair_list
     su.check_phi(phi)
     phi0 = float(np.pi * np.sum(radii ** 2) / np.prod(box))
@@ -112,7 +112,7 @@ def main(argv=None) -> int:
         X = rectangular_positions(s, h0, gamma)
         box = np.array([h0[0, 0], h0[1, 1]])
         pos, box1, info = compress(X, radii, box, a.phi)
-        from . import suspension as su
+        from .models import suspension as su
         state = su.from_configuration(pos, radii, box1, 0.0)    # checks: no overlap, phi < phi_J
     except InputError as exc:
         print(f"python -m parflow.prepare: error: {exc}", file=sys.stderr)

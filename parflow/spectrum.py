@@ -99,6 +99,27 @@ def omega_from_lambda(lam: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(lam, 0.0, None))
 
 
+def on_force_factor(system, k: int = 1) -> "LowSpectrum":
+    """The k lowest eigenpairs of a bonded system's N by shift-and-invert at 0 on the force
+    solver's factor (already loaded at the configuration): no second factorisation of N."""
+    return LowSpectrum(system.ops.N, k=k, parallel=system.parallel, ksp=system.tau_solver.ksp)
+
+
+def lowest_omega(spec: "LowSpectrum") -> float:
+    """omega_min = sqrt(lambda_min) from a solve of ``spec``."""
+    lam, _ = spec.solve()
+    return float(omega_from_lambda(lam[:1])[0])
+
+
+def omega_min_on(system) -> float:
+    """omega_min of a bonded system's loaded N, on the force solver's factor."""
+    spec = on_force_factor(system, 1)
+    try:
+        return lowest_omega(spec)
+    finally:
+        spec.destroy()
+
+
 def omega_min(A, k: int = 1) -> float:
     sp = LowSpectrum(A, k=k)
     try:

@@ -298,7 +298,7 @@ def test_pair_list_picks_a_class_per_kernel():
 
 def test_mixture_is_the_one_source():
     """The suspension's constants and radii are the mixture's (no second copy)."""
-    from parflow import suspension as su
+    from parflow.models import suspension as su
     from parflow.models import suspension as msu
     assert mixture.PHI_J == {2: 0.843, 3: 0.648}
     assert su.PHI_J == msu.PHI_J == mixture.PHI_J_2D == mixture.PHI_J[2]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from parflow import prepare
-from parflow import suspension as su
+from parflow.models import suspension as su
 from parflow.geometry import cell_at, velocity_gradient
 from parflow.models import suspension as msu
 from parflow.state import InputError

@@ -9,6 +9,7 @@ import pytest
 from petsc4py import PETSc
 
 from parflow.models import chain
+from parflow.models import frozen as fz
 from parflow.models import suspension as msu
 from parflow.scene import load_scene
 from parflow.state import InputError
@@ -134,7 +135,7 @@ def test_delta_gamma_finds_the_chain_jamming_strain():
     try:
         F0 = sysm.evaluate(st.s, 0.0)
         factor = 1e6
-        out = msu.delta_gamma(sysm, st, F0, -1, scene, factor, max_strain=1.0)
+        out = fz.delta_gamma(sysm, st, F0, -1, scene, factor, max_strain=1.0)
     finally:
         sysm.destroy()
     gc = st.meta["gamma_c"]
@@ -146,9 +147,8 @@ def test_delta_gamma_finds_the_chain_jamming_strain():
 
 
 def test_freeze_keeps_force_bearing_contacts():
-    from parflow import suspension as su
     from parflow.dynamics.engines import ContactEngine
-    state = su.make_suspension(128, 0.80, seed=2)
+    state = msu.make_suspension(128, 0.80, seed=2)
     state.meta.update(msu.controls({}))
     scene = load_scene('[model]\nname = "suspension"\nN = 128\n[[protocol.leg]]\n'
                        'direction = "forward"\nstrain = 1\n')
@@ -156,7 +156,7 @@ def test_freeze_keeps_force_bearing_contacts():
     for _ in range(20):
         eng.step(1, None)
     F = eng.probe()
-    frozen = msu.freeze(eng.state, F)
+    frozen = fz.freeze(eng.state, F)
     fb = msu.force_bearing(F.f)
     assert len(frozen.bonds) == int(fb.sum()) > 0
     r = (frozen.s[frozen.bonds.j] + frozen.bonds.shift - frozen.s[frozen.bonds.i]) @ frozen.h.T
@@ -168,8 +168,7 @@ def test_freeze_keeps_force_bearing_contacts():
 
 def test_configuration_file(tmp_path, comm):
     """A user configuration runs; one with an overlap is refused with the pair named."""
-    from parflow import suspension as su
-    st = su.make_suspension(64, 0.78, seed=4)
+    st = msu.make_suspension(64, 0.78, seed=4)
     X = st.s @ st.h.T
     box = np.diag(st.h0)
     good = str(tmp_path / f"good{comm.rank}.npz")

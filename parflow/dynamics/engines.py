@@ -7,7 +7,7 @@ for every model; an engine owns the physics of a step:
   projection on the rod lengths (``dynamics.heun.Heun``), forces from N tau = -b
   (``dynamics.bonded.BondedSystem``).
 * :class:`ContactEngine` -- hard-disc suspension: contacts found anew every step, forces
-  from the contact LCP, conservative no-overlap step (``parflow.suspension.Suspension``).
+  from the contact LCP, conservative no-overlap step (``dynamics.hard_discs.Suspension``).
 
 Both expose: ``start()`` (forces at the initial configuration), ``step(direction, cap)``,
 ``observe()``, ``row()`` (per-step diagnostics), ``omega_min()``, ``analyses()``,
@@ -20,9 +20,13 @@ import dataclasses
 
 import numpy as np
 
-from .heun import Heun, Jammed, StepControl
-from ..state import Bonds, InputError, State
+from ..observables import stress
+from ..observables.contacts import coordination
+from ..spectrum import lowest_omega, on_force_factor
+from ..state import InputError, State
 from .bonded import BondedSystem, resolve_reuse
+from .hard_discs import ShearJammed, Suspension
+from .heun import Heun, Jammed, StepControl
 
 
 def _at(state: State, s: np.ndarray, gamma: float) -> State:
@@ -89,7 +93,7 @@ class BondedEngine:
         F, state = self.F, self.state
         obs = dict(sigma=F.sigma, sigma_tb=F.sigma_tb, sigma_mismatch=F.sigma_mismatch,
                    pressure=F.pressure,
-                   V2=float(np.einsum("id,id->", F.V_na, F.V_na)) / state.n,
+                   V2=stress.V2(F.V_na),
                    residual=F.info.residual, backward_error=F.info.backward_error,
                    refinements=F.info.refinements)
         obs.update(self.model.observables(state, F))
@@ -104,14 +108,10 @@ class BondedEngine:
                     length_error=res.length_error, proj_iter=res.proj_iter)
 
     def omega_min(self) -> float:
-        from ..spectrum import LowSpectrum, omega_from_lambda
         self.system.sync()
-        if self._spec is None:
-            # shift-and-invert at 0 on the force solver's factor of N (already up to date)
-            self._spec = LowSpectrum(self.system.ops.N, k=self.n_eigs, parallel=self.system.parallel,
-                                     ksp=self.system.tau_solver.ksp)
-        lam, _ = self._spec.solve()
-        return float(omega_from_lambda(lam[:1])[0])
+        if self._spec is None:      # kept: its Krylov-Schur space is reused from call to call
+            self._spec = on_force_factor(self.system, self.n_eigs)
+        return lowest_omega(self._spec)
 
     def analyses(self) -> dict:
         self.system.sync()
@@ -156,18 +156,16 @@ class ContactForce:
 
 
 class ContactEngine:
-    """Hard-disc suspension: one LCP step per strain step (``parflow.suspension``)."""
+    """Hard-disc suspension: one LCP step per strain step (``dynamics.hard_discs``)."""
 
     kind = "contacts"
 
     def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
-        from .. import suspension as su
         self.comm, self.state, self.model, self.scene = comm, state, model, scene
-        self.su = su
         if ck is None:
-            self.sim = su.Suspension(state, **model.controls(state.meta))
+            self.sim = Suspension(state, **model.controls(state.meta))
         else:
-            self.sim = su.Suspension.restore(model.restore_dict(state, ck))
+            self.sim = Suspension.restore(model.restore_dict(state, ck))
             self.state = self.sim.state
             self.state.meta.update(state.meta)
         self.stats = None
@@ -199,19 +197,9 @@ class ContactEngine:
         next, without moving (the first row, and the configuration analyses look at)."""
         sim, st = self.sim, self.sim.state
         direction = self._direction if direction is None else direction
-        c = self.su.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
-        dg = sim.next_dgamma()
-        while True:               # as in Suspension.step: an LCP that fails gets a smaller step
-            try:
-                _, _, f, V, _, _ = sim.forces(c, dg, direction)
-                break
-            except self.su.LCPFailure:
-                dg *= 0.1
-                if dg < sim.dg_min:
-                    raise
-        sigma = float(np.einsum("id,id->", V, V)) / sim.omega
-        gap_work = -float(f @ c.gap) / dg / sim.omega
-        return ContactForce(st.gamma, st.h, c, f, V, sigma, gap_work)
+        c, f, V, dg = sim.probe(direction)
+        return ContactForce(st.gamma, st.h, c, f, V, stress.sigma(V, sim.omega),
+                            stress.gap_work(f, c.gap, dg, sim.omega))
 
     def start(self):
         self.F = self.probe(+1)
@@ -220,16 +208,11 @@ class ContactEngine:
     def step(self, direction: int, cap: float | None) -> float:
         sim = self.sim
         self._direction = direction
-        keep = sim.dg_max
-        if cap is not None:
-            sim.dg_max = min(sim.dg_max, max(cap, sim.dg_min))
+        g0 = sim.state.gamma
         try:
-            g0 = sim.state.gamma
-            self.stats = sim.step(direction)
-        except self.su.ShearJammed as exc:
+            self.stats = sim.step(direction, cap)
+        except ShearJammed as exc:
             raise Jammed(str(exc)) from None
-        finally:
-            sim.dg_max = keep
         st = sim.state
         self.F = ContactForce(st.gamma, st.h, sim.last_c, sim.last_f, sim.last_V, self.stats.sigma,
                               self.stats.gap_work)
@@ -238,12 +221,12 @@ class ContactEngine:
     def observe(self) -> dict:
         sim, F = self.sim, self.F
         n = self.state.n
-        fb_sigma = -self._direction * float(F.f @ F.c.b) / sim.omega
-        p = float(F.f @ F.c.dist) / (self.state.d * sim.omega)
-        z = self.su.coordination(F.c, F.f, n, self.state.d)
+        fb_sigma = stress.sigma_tb(F.f, F.c.b, sim.omega, self._direction)
+        p = stress.pressure(F.f, F.c.dist, sim.omega, self.state.d)
+        z = coordination(F.c, F.f, n, self.state.d)
         return dict(sigma=F.sigma, sigma_fb=fb_sigma, pressure=p,
                     mu=F.sigma / p if p > 0 else float("nan"),
-                    V2=float(np.einsum("id,id->", F.V_na, F.V_na)) / n,
+                    V2=stress.V2(F.V_na),
                     max_overlap=sim.max_overlap, collisions=sim.collisions, **z)
 
     def row(self) -> dict:

@@ -1,14 +1,15 @@
 """Hard-disc suspension in simple shear as a model of the scene driver (paper §V, Figs. 6-7).
 
-The physics (initial states, contact LCP, the no-overlap step) is in ``parflow.suspension``
-and ``parflow.contacts``; the driver runs it through ``engines.ContactEngine``.  This module
-holds the scene parameters, the builder, and the analyses at chosen instants:
+The step (contact LCP, the no-overlap step) is in ``dynamics.hard_discs`` and
+``dynamics.lcp``; the driver runs it through ``dynamics.engines.ContactEngine``.  This module
+holds the scene parameters, the initial states (random non-overlapping discs relaxed by FIRE,
+or a user configuration), and the analyses at chosen instants:
 
 * the contact-force distribution P(f) of the force-bearing contacts (f / <f>);
-* the velocity correlation C(r) of V_na (``network.correlation``: exact pair sum up to 10^4
-  discs, FFT on a grid above);
-* the **frozen contact network**: the force-bearing contacts become rods at their current
-  length (``freeze``).  On it, with the network machinery (``BondedSystem``):
+* the velocity correlation C(r) of V_na (``observables.correlation``: exact pair sum up to
+  10^4 discs, FFT on a grid above);
+* the **frozen contact network** (``models.frozen``): the force-bearing contacts become rods
+  at their current length.  On it, with the bonded machinery (``BondedSystem``):
   - omega_min = sqrt(lambda_min(N_fb)) (SLEPc on the force solver's factor);
   - the point response N f = |beta>, V = S^T f, binned by distance, l_c and l_r fits;
   - the distance to jamming delta_gamma: the frozen network is sheared *backwards* (against
@@ -23,17 +24,27 @@ holds the scene parameters, the builder, and the analyses at chosen instants:
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
+from ..dynamics.hard_discs import min_gap
+from ..dynamics.lcp import FACTORS
+from ..geometry import cell_at, find_candidates, velocity_gradient
 from ..observables import correlation as corr
 from ..observables import response as resp
+from ..observables.contacts import force_bearing, force_distribution
+from ..packing.fire import fire_minimize
 from ..packing.mixture import PHI_J_2D as PHI_J
-from ..state import Bonds, InputError, State
+from ..packing.mixture import RADIUS_RATIO, binary_radii, check_mixture, check_phi
+from ..packing.pairs import pair_list, wrap01
+from ..solvers import SolveError
+from ..spectrum import omega_min_on
+from ..state import InputError, State
+from . import frozen as fz
 
 ENGINE = "contacts"
 FLOW = "shear"
-FACTORS = ("cholmod", "superlu")
 
 PARAMS = {
     # name: (type, default, check, description)
@@ -78,16 +89,15 @@ def _defaults(params: dict) -> dict:
 
 
 def build(params: dict, seed: int) -> State:
-    from .. import suspension as su
     p = _defaults(params)
     if p["dg_min"] >= p["dg_max"]:
         raise InputError("model.dg_min must be smaller than model.dg_max")
-    su.check_mixture(p["ratio"], (p["small_fraction"], 1.0 - p["small_fraction"]))
+    check_mixture(p["ratio"], (p["small_fraction"], 1.0 - p["small_fraction"]))
     if p["configuration_file"]:
         state = load_configuration(p["configuration_file"], p)
     else:
-        state = su.make_suspension(p["N"], p["phi"], seed=seed, ratio=p["ratio"],
-                                   composition=(p["small_fraction"], 1.0 - p["small_fraction"]))
+        state = make_suspension(p["N"], p["phi"], seed=seed, ratio=p["ratio"],
+                                composition=(p["small_fraction"], 1.0 - p["small_fraction"]))
     state.meta.update(model="suspension", phi_target=float(p["phi"]), ratio=float(p["ratio"]),
                       small_fraction=float(p["small_fraction"]))
     state.meta.update({k: (int(v) if isinstance(v, bool) else v) for k, v in p.items()
@@ -95,12 +105,94 @@ def build(params: dict, seed: int) -> State:
     return state
 
 
+# --------------------------------------------------------------------------- initial states
+
+def make_suspension(n: int, phi: float, *, seed: int = 0, ratio: float = RADIUS_RATIO,
+                    composition=(0.5, 0.5), inflate: float = 1e-6,
+                    max_iter: int = 200_000, tries: int = 5) -> State:
+    """Non-overlapping binary discs at packing fraction ``phi`` < phi_J in a square box.
+
+    Uniform random positions, then the soft-disc FIRE minimiser of ``packing.fire`` with
+    radii inflated by (1 + ``inflate``) until no (inflated) pair overlaps: the true discs
+    then have every gap >= inflate * (R_i + R_j) > 0, verified exactly afterwards.  If the
+    minimiser ends in a jammed state (overlaps left: small N jams below phi_J), new random
+    positions are drawn, up to ``tries`` times.
+    """
+    check_phi(phi)
+    check_mixture(ratio, composition)
+    if not isinstance(n, (int, np.integer)) or n < 16:
+        raise InputError(f"suspension: N must be an integer >= 16, got {n!r}")
+    rng = np.random.default_rng(seed)
+    radii = binary_radii(n, ratio, composition, rng)
+    L = float((np.pi * np.sum(radii ** 2) / phi) ** 0.5)
+    box = np.array([L, L])
+    pl = pair_list(radii * (1.0 + inflate), box, 0.4, "auto")
+    if L <= 2.0 * pl.cut:
+        raise InputError(f"suspension: N = {n} gives a box of side {L:.3g}: too small, use more discs")
+    for attempt in range(tries):
+        X = np.ascontiguousarray((rng.random((n, 2)) * box).T)
+        X, n_overlap, info = relax_overlaps(X, radii, pl, max_iter)
+        if n_overlap == 0:
+            break
+    else:
+        raise InputError(f"suspension: no unjammed configuration of N = {n} discs at phi = {phi} "
+                         f"in {tries} tries (small systems jam below phi_J ~ {PHI_J}: "
+                         f"use more discs or a lower phi)")
+    s = wrap01(X.T / box)
+    h0 = np.diag(box)
+    state = State(s, h0, velocity_gradient("shear", 2), 0.0, None, radii)
+    state.meta.update(model="suspension", phi=float(np.pi * np.sum(radii ** 2) / L ** 2),
+                      seed=seed, fire_iterations=info["iterations"], attempts=attempt + 1)
+    gap = min_gap(state)
+    if gap < 0:
+        raise RuntimeError(f"suspension: initial state overlaps by {-gap:.3g}")
+    state.meta["initial_min_gap"] = gap
+    return state
+
+
+def relax_overlaps(X: np.ndarray, radii: np.ndarray, pl, max_iter: int):
+    """FIRE from the (d, N) positions X on the pair list ``pl`` of the inflated radii, until
+    no inflated pair overlaps.  Returns (X, number of pairs of true discs still overlapping --
+    or -1 if FIRE did not converge --, FIRE info)."""
+    X, info = fire_minimize(X, pl, 1e-12, max_iter=max_iter)
+    X = pl.build(X)
+    _, r = pl.pair_vectors(X)
+    n_overlap = int(np.count_nonzero(r < radii[pl.i] + radii[pl.j]))
+    return X, (n_overlap if info["converged"] else -1), info
+
+
+def from_configuration(positions, radii, box, gamma: float = 0.0) -> State:
+    """A State from user positions (N, 2) in a square/rectangular box (Lx, Ly) at strain
+    ``gamma``; refuses overlapping discs, non-positive radii and phi >= phi_J."""
+    X = np.asarray(positions, dtype=float)
+    radii = np.asarray(radii, dtype=float)
+    box = np.asarray(box, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 2 or radii.shape != (X.shape[0],) or box.shape != (2,):
+        raise InputError("suspension: positions must be (N, 2), radii (N,), box (2,)")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(radii)) and np.all(box > 0)):
+        raise InputError("suspension: positions, radii and box must be finite, box > 0")
+    if np.any(radii <= 0):
+        raise InputError("suspension: every radius must be > 0")
+    h0 = np.diag(box)
+    E = velocity_gradient("shear", 2)
+    h = cell_at(h0, E, gamma)
+    s = X @ np.linalg.inv(h).T
+    state = State(s - np.floor(s), h0, E, float(gamma), None, radii.copy())
+    phi = float(np.pi * np.sum(radii ** 2) / np.prod(box))
+    check_phi(phi)
+    state.meta.update(model="suspension", phi=phi)
+    c = find_candidates(state.s, radii, state.h, E, 0.0)
+    bad = c.gap < 0
+    if np.any(bad):
+        raise InputError(f"suspension: the configuration has {int(bad.sum())} overlapping "
+                         f"pair(s), the largest overlap {-c.gap.min():.3g} a0 (e.g. discs "
+                         f"{int(c.i[bad][0])} and {int(c.j[bad][0])}); hard discs must not overlap")
+    return state
+
+
 def load_configuration(path: str, p: dict) -> State:
     """A user configuration (.npz: positions, radii, box[, gamma]); refused if it does not
-    match the scene (N, phi to 1e-6) or if discs overlap (``suspension.from_configuration``)."""
-    import os
-
-    from .. import suspension as su
+    match the scene (N, phi to 1e-6) or if discs overlap (``from_configuration``)."""
     if not os.path.isfile(path):
         raise InputError(f"model.configuration_file {path!r} does not exist")
     try:
@@ -112,8 +204,8 @@ def load_configuration(path: str, p: dict) -> State:
     if missing:
         raise InputError(f"model.configuration_file {path!r} lacks {', '.join(missing)} "
                          f"(needs positions (N, 2), radii (N,), box (2,), optionally gamma)")
-    state = su.from_configuration(data["positions"], data["radii"], data["box"],
-                                  float(data.get("gamma", 0.0)))
+    state = from_configuration(data["positions"], data["radii"], data["box"],
+                               float(data.get("gamma", 0.0)))
     bad = []
     if state.n != p["N"]:
         bad.append(f"N = {state.n} (scene: model.N = {p['N']})")
@@ -122,7 +214,7 @@ def load_configuration(path: str, p: dict) -> State:
     if bad:
         raise InputError(f"model.configuration_file {path!r} does not match the scene: "
                          + "; ".join(bad))
-    state.meta.update(configuration_file=path, initial_min_gap=su.min_gap(state))
+    state.meta.update(configuration_file=path, initial_min_gap=min_gap(state))
     return state
 
 
@@ -136,7 +228,7 @@ def _meta(meta: dict, keys) -> dict:
 
 
 def controls(meta: dict) -> dict:
-    """Keyword arguments of ``suspension.Suspension`` from the state's meta."""
+    """Keyword arguments of ``dynamics.hard_discs.Suspension`` from the state's meta."""
     return _meta(meta, _CONTROL_KEYS)
 
 
@@ -150,135 +242,10 @@ def restore_dict(state: State, ck: dict) -> dict:
                 infeasible_reductions=ck["infeasible_reductions"], controls=controls(state.meta))
 
 
-# --------------------------------------------------------------------------- frozen network
-
-def force_bearing(f: np.ndarray, rel: float = 1e-12) -> np.ndarray:
-    return f > rel * (float(f.max()) if f.size else 0.0)
-
-
-def freeze(state: State, F, rel: float = 1e-12) -> State:
-    """The force-bearing contacts of ``F`` (engines.ContactForce at the current configuration)
-    as rods at their current length: a bonded State at the same positions and strain."""
-    fb = force_bearing(F.f, rel)
-    c = F.c
-    if not np.any(fb):
-        raise InputError("suspension: no force-bearing contact to freeze")
-    bonds = Bonds(c.i[fb], c.j[fb], c.shift[fb], c.dist[fb])
-    return State(np.array(state.s, float), state.h0.copy(), state.E.copy(), float(F.gamma),
-                 bonds, None, dict(model="frozen contacts"))
-
-
-def _frozen_system(comm, frozen: State, scene: dict):
-    from ..dynamics.bonded import BondedSystem
-    return BondedSystem(comm, frozen, scene["solver"]["preset"], scene["solver"]["parallel"])
-
-
-def _omega_min(system) -> float:
-    """omega_min of the loaded N, on the force solver's factor (shift-and-invert at 0)."""
-    from ..spectrum import LowSpectrum, omega_from_lambda
-    spec = LowSpectrum(system.ops.N, k=1, parallel=system.parallel, ksp=system.tau_solver.ksp)
-    try:
-        lam, _ = spec.solve()
-    finally:
-        spec.destroy()
-    return float(omega_from_lambda(lam[:1])[0])
-
-
 def frozen_omega_min(comm, state: State, F, scene: dict) -> float:
-    """omega_min of the frozen contact network (NaN if it carries a state of self-stress)."""
-    from ..solvers import SolveError
-    frozen = freeze(state, F)
-    system = _frozen_system(comm, frozen, scene)
-    try:
-        system.evaluate(frozen.s, frozen.gamma, what="frozen contacts")
-        return _omega_min(system)
-    except SolveError:
-        return float("nan")
-    finally:
-        system.destroy()
-
-
-def _heun(system, scene: dict):
-    """The step control of the scene's [integrator] and a Heun stepper on ``system``."""
-    from ..dynamics.heun import Heun, StepControl
-    control = StepControl(**scene["integrator"])
-    return control, Heun(system, control)
-
-
-def delta_gamma(system, frozen: State, F0, direction: int, scene: dict, factor: float,
-                max_strain: float, max_steps: int = 20_000) -> dict:
-    """Shear the frozen network against ``direction`` until sigma >= factor * sigma_0."""
-    from ..dynamics.heun import Jammed
-    control, integ = _heun(system, scene)
-    s, g, F = frozen.s, frozen.gamma, F0
-    sigma0 = F.sigma
-    target = factor * sigma0
-    xs, sig = [0.0], [sigma0]
-    dg, x, how = control.initial_dgamma, 0.0, "target"
-    try:
-        while F.sigma < target:
-            if x >= max_strain:
-                how = "max_strain"
-                break
-            if len(xs) > max_steps:
-                how = "max_steps"
-                break
-            res = integ.step(s, g, F, -direction, dg, dg_cap=max_strain - x + 1e-15)
-            s, g, F, dg = res.s, res.gamma, res.F, res.next_dgamma
-            x += abs(res.dgamma)
-            xs.append(x)
-            sig.append(F.sigma)
-    except Jammed:
-        how = "jammed"
-    xs, sig = np.array(xs), np.array(sig)
-    dgam = math.nan
-    if len(xs) >= 2 and sig[-1] > sig[-2] and how in ("target", "jammed"):
-        # 1/sigma linear in x near jamming: extrapolate the last two records to 1/sigma = 0
-        a, b = 1.0 / sig[-2], 1.0 / sig[-1]
-        dgam = float(xs[-1] + b * (xs[-1] - xs[-2]) / (a - b))
-    return dict(delta_gamma=dgam, delta_gamma_reached=float(xs[-1]), delta_gamma_steps=len(xs) - 1,
-                delta_gamma_stop=how, frozen_sigma_end=float(sig[-1]),
-                arrays=dict(dg_x=xs, dg_sigma=sig))
-
-
-def relaxation_rate(system, frozen: State, F0, direction: int, scene: dict,
-                    rel: float = 1e-3, steps: int = 4) -> dict:
-    """dsigma/dgamma of the suspension between collisions, at this instant: the frozen
-    contacts are the suspension's constraints until a contact opens or a new one closes, so
-    the derivative of the frozen network's sigma along the flow (``direction``) is the
-    suspension's.  ``steps`` Heun steps of strain rel / sigma_0 each; the derivative at 0
-    from a quadratic fit of sigma(x).  C = sigma_0^2 / (-dsigma/dgamma) (paper: constant)."""
-    from ..dynamics.heun import Jammed
-    _, integ = _heun(system, scene)
-    s, g, F = frozen.s, frozen.gamma, F0
-    sigma0 = F.sigma
-    h = rel / max(sigma0, 1e-300)
-    xs, sig = [0.0], [sigma0]
-    try:
-        for _ in range(steps):
-            res = integ.step(s, g, F, direction, h, dg_cap=h)
-            s, g, F = res.s, res.gamma, res.F
-            xs.append(xs[-1] + abs(res.dgamma))
-            sig.append(F.sigma)
-    except Jammed:
-        pass
-    out = dict(relax_dsdg=math.nan, relax_C=math.nan, relax_sigma=sigma0)
-    if len(xs) >= 3:
-        p = np.polyfit(np.array(xs), np.array(sig), min(2, len(xs) - 2))
-        dsdg = float(p[-2])
-        out.update(relax_dsdg=dsdg, relax_C=float(sigma0 ** 2 / -dsdg) if dsdg < 0 else math.nan)
-    return out
-
-
-def force_distribution(f: np.ndarray, bins: int) -> dict:
-    """P(f/<f>) of the force-bearing contacts on log-spaced bins from 1e-4 to 1e2."""
-    fb = f[force_bearing(f)]
-    out = dict(edges=np.geomspace(1e-4, 1e2, bins + 1), P=np.full(bins, np.nan), mean=math.nan)
-    if fb.size:
-        x = fb / fb.mean()
-        hist, _ = np.histogram(x, out["edges"])
-        out.update(P=hist / (x.size * np.diff(out["edges"])), mean=float(fb.mean()))
-    return out
+    """omega_min of the suspension at this instant: that of its frozen contact network
+    (NaN if it carries a state of self-stress)."""
+    return fz.frozen_omega_min(comm, state, F, scene)
 
 
 # --------------------------------------------------------------------------- analyses
@@ -286,7 +253,6 @@ def force_distribution(f: np.ndarray, bins: int) -> dict:
 def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
     """P(f), C(r) and, on the frozen contact network, sigma, omega_min, the point response
     and delta_gamma, at the configuration of ``F`` (a probe of the current state)."""
-    from ..solvers import SolveError
     meta = _meta(state.meta, _ANALYSIS_KEYS)
     s, h = np.asarray(state.s, float), F.h
     arrays, scalars = {}, {}
@@ -298,14 +264,14 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
         scalars["corr_method"] = cr["method"]
         arrays.update(corr_r=cr["r"], corr_C=cr["C"], corr_counts=cr["counts"])
         scalars["corr_length"] = corr.crossing_length(cr["r"], cr["C"], counts=cr["counts"])
-    frozen = freeze(state, F)
-    system = _frozen_system(comm, frozen, scene)
+    frozen = fz.freeze(state, F)
+    system = fz.frozen_system(comm, frozen, scene)
     scalars.update(frozen_error="", frozen_sigma=math.nan, frozen_omega_min=math.nan)
     try:
         Fz = system.evaluate(frozen.s, frozen.gamma, what="frozen contacts")
         scalars["frozen_sigma"] = Fz.sigma
         scalars["frozen_n_rods"] = len(frozen.bonds)
-        scalars["frozen_omega_min"] = _omega_min(system)
+        scalars["frozen_omega_min"] = omega_min_on(system)
         if meta["response_rods"] > 0:
             bd = frozen.bonds
             rods = resp.pick_rods(s, h, bd, meta["response_rods"])
@@ -315,11 +281,11 @@ def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
                           resp_f=pr["f_mean"], resp_rods=rods, resp_VV=pr["VV"])
             scalars.update({f"resp_{k}": v for k, v in fit.items()})
             scalars["VV"] = float(np.mean(pr["VV"]))
-        scalars.update(relaxation_rate(system, frozen, Fz, direction, scene))
+        scalars.update(fz.relaxation_rate(system, frozen, Fz, direction, scene))
         system.load(Fz.n)            # back to the configuration of the instant
         if meta["delta_gamma"]:
-            dg = delta_gamma(system, frozen, Fz, direction, scene, meta["delta_gamma_factor"],
-                             meta["delta_gamma_max"])
+            dg = fz.delta_gamma(system, frozen, Fz, direction, scene, meta["delta_gamma_factor"],
+                                meta["delta_gamma_max"])
             arrays.update(dg.pop("arrays"))
             scalars.update(dg)
     except SolveError as exc:

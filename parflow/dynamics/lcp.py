@@ -20,8 +20,8 @@ import scipy.sparse as sp
 import scipy.linalg
 import scipy.sparse.linalg as spla
 
-from .geometry import Candidates
-from .state import InputError
+from ..geometry import Candidates
+from ..errors import InputError
 
 
 # =========================================================================== neighbours

@@ -1,0 +1,272 @@
+"""One strain step of a hard-disc suspension in simple shear (affine solvent model; DESIGN §2, §5).
+
+A "catching-up" scheme (Maury & Venel; Lerner, Düring & Wyart 2013), for a strain step dg:
+
+* candidate pairs: gap h_a = |r_a| - (R_i + R_j) < skin (``geometry.find_candidates``:
+  minimum image in the Lees-Edwards-remapped cell, vectorised).
+* contact forces: the LCP over the candidates (``dynamics.lcp.solve_lcp``)
+      w = N_C f + b_C + h_C/dg >= 0,   f >= 0,   f . w = 0,     N_C = S_C S_C^T,
+  i.e. f = argmin_{f >= 0} 1/2 f^T N_C f + f^T q,  q = b + h/dg.  A singular N_AA (a state
+  of self-stress among the active contacts) is regularised and counted.
+* the step: V_na = S_C^T f, s += dg h(gamma+dg)^-1 V_na, gamma += dg.  Using the *end*
+  cell makes the pair-vector update exact, r' = r + dg (E r + dV), so the new gap obeys
+  |r'| - sigma >= n.r' - sigma = dg w >= 0 (the linearised constraint is conservative):
+  overlaps can only come from round-off, the LCP tolerance, or a pair outside the list,
+  which the step bound dg (2 R_max + skin + 2 max|V_na|) < skin excludes.
+
+Step size: min(dg_max, c/sigma, dmax/max|V|, MAX_GROWTH x the last step, the leg's cap);
+an infeasible LCP divides it by 10, an oversized displacement by 2; below dg_min with an
+infeasible LCP the suspension is declared shear-jammed (:class:`ShearJammed`).
+
+Signs: f > 0 is compression; sigma = |V_na|^2 / Omega; with collisions in the step
+|V_na|^2 = -<f|b> - <f|h>/dg exactly (complementarity), so sigma = sigma_fb + gap_work
+(``observables.stress``).
+
+Replicated numpy/scipy: every rank computes the same thing (bit-identical on every rank).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import Candidates, cell_at, find_candidates, velocity_gradient
+from ..observables import stress
+from ..state import State
+from .lcp import FACTORS, LCPFailure, LCPInfo, rigidity, solve_lcp
+
+DEFAULT_SKIN = 0.3
+FIRST_DGAMMA = 1e-4
+# a step is at most this many times the last accepted one: after a step had to be cut
+# (an infeasible LCP, /10 per retry) the next ones grow back geometrically instead of
+# starting again from c/sigma -- near shear jamming that start failed again and again
+# (phi = 0.84: up to 600 solves per failed LCP, ~1e-4 strain per minute)
+MAX_GROWTH = 4.0
+
+
+def min_gap(state: State, skin: float = DEFAULT_SKIN) -> float:
+    """Smallest gap |r| - (R_i + R_j) over all pairs within the skin (inf if none)."""
+    c = find_candidates(state.s, state.radii, state.h, state.E, skin)
+    return float(c.gap.min()) if len(c) else math.inf
+
+
+@dataclass
+class StepStats:
+    gamma: float
+    dgamma: float
+    sigma: float            # |V_na|^2 / Omega
+    sigma_fb: float         # -<f|b> / Omega
+    gap_work: float         # -<f|h>/dg / Omega (nonzero when a collision closes a gap)
+    pressure: float         # sum f |r| / (d Omega)
+    n_candidates: int
+    n_active: int
+    n_new: int              # contacts carrying force that did not in the previous step
+    n_coll: int             # collisions: new force-bearing contacts whose gap was > collision_gap
+    overlap: float          # largest overlap among the candidates at the start of the step
+    lcp: LCPInfo
+    times: dict = field(default_factory=dict)
+
+
+class ShearJammed(RuntimeError):
+    """The contact LCP is infeasible at every allowed step size: finite-size shear jamming."""
+
+
+class Suspension:
+    """Stepper for a hard-disc suspension state (radii set, no bonds)."""
+
+    def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
+                 dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12,
+                 factor: str = "cholmod", collision_gap: float = 1e-4,
+                 overlap_tol: float = 1e-12):
+        if state.radii is None:
+            raise InputError("suspension: the state has no radii")
+        if not np.any(state.E[0, 1]) or np.any(state.E @ state.E):
+            raise InputError("suspension: only simple shear (E = [[0,1],[0,0]]) is implemented")
+        self.state = state
+        self.skin, self.c, self.dmax, self.dg_max, self.dg_min = skin, c, dmax, dg_max, dg_min
+        if factor not in FACTORS:
+            raise InputError(f"suspension: factor must be one of {FACTORS}, got {factor!r}")
+        self.factor = factor
+        # persistent contacts reopen by O(dg^2 |V|^2 / r) ~ 1e-8-1e-5 a0 per step (the step
+        # moves particles along straight lines); a collision is a contact that did not carry
+        # force in the previous step and closes a gap larger than collision_gap
+        self.collision_gap = collision_gap
+        # largest overlap a step may create through an unsatisfied constraint (w < 0)
+        self.overlap_tol = overlap_tol
+        self.infeasible_reductions = 0
+        self.omega = state.volume
+        self.max_overlap = max(0.0, -min_gap(state))
+        self.sigma = 0.0
+        self.vmax = 0.0
+        self.steps = 0
+        self.collisions = 0
+        self.singular_events = 0
+        self._active_keys = np.zeros(0, np.int64)
+        self.last_dg = 0.0             # the last accepted step (0: none yet)
+        self.last_f = None
+        self.last_c = None
+
+    def next_dgamma(self, cap: float | None = None) -> float:
+        """The strain step before the checks of the step: min(dg_max, c/sigma, dmax/max|V|,
+        MAX_GROWTH x the last accepted step, ``cap``) with sigma and max|V| of the previous
+        step (``cap``: the strain left in the leg, never below dg_min); the first step (no
+        sigma yet) is at most
+        FIRST_DGAMMA (dense initial states have every gap ~1e-6 a0: a large first step
+        makes the cold-start LCP infeasible and costs ~1000 active-set iterations, measured
+        at N = 1024, phi = 0.84)."""
+        dg_max = self.dg_max if cap is None else min(self.dg_max, max(cap, self.dg_min))
+        dg = dg_max if self.steps > 0 else min(dg_max, FIRST_DGAMMA)
+        if self.sigma > 0:
+            dg = min(dg, self.c / self.sigma)
+        if self.vmax > 0:
+            dg = min(dg, self.dmax / self.vmax)
+        if self.last_dg > 0:
+            dg = min(dg, MAX_GROWTH * self.last_dg)
+        return dg
+
+    def _keys(self, c: Candidates) -> np.ndarray:
+        return c.i * self.state.n + c.j
+
+    def forces(self, c: Candidates, dg: float, direction: int = 1):
+        """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
+        -1 reversed flow: the affine rates change sign, b -> -b)."""
+        S = rigidity(c, self.state.n)
+        q = direction * c.b + c.gap / dg
+        warm = np.isin(self._keys(c), self._active_keys)
+        f, info = solve_lcp(S, q, warm, factor=self.factor)
+        V = (S.T @ f).reshape(self.state.n, self.state.d)
+        return S, q, f, V, info, warm
+
+    def probe(self, direction: int = 1):
+        """Contact forces at the current configuration for the step the stepper would take
+        next, without moving: (candidates, f, V_na, dg).  An LCP that fails gets a smaller
+        step, as in :meth:`step` (the first row of a run, and what analyses look at)."""
+        st = self.state
+        c = find_candidates(st.s, st.radii, st.h, st.E, self.skin)
+        dg = self.next_dgamma()
+        while True:
+            try:
+                _, _, f, V, _, _ = self.forces(c, dg, direction)
+                return c, f, V, dg
+            except LCPFailure:
+                dg *= 0.1
+                if dg < self.dg_min:
+                    raise
+
+    def step(self, direction: int = 1, cap: float | None = None) -> StepStats:
+        """One step of strain magnitude dg (chosen here, at most ``cap``) in ``direction``
+        (+1: gamma grows, -1: reversed flow, gamma decreases).  V_na is the non-affine
+        velocity per unit strain *along the direction of the flow*, so sigma = |V_na|^2 /
+        Omega >= 0 either way."""
+        if direction not in (1, -1):
+            raise ValueError(f"direction must be +1 or -1, got {direction!r}")
+        st = self.state
+        t0 = time.perf_counter()
+        h = st.h
+        c = find_candidates(st.s, st.radii, h, st.E, self.skin)
+        t1 = time.perf_counter()
+        overlap = float(max(0.0, -c.gap.min())) if len(c) else 0.0
+        self.max_overlap = max(self.max_overlap, overlap)
+        dg = self.next_dgamma(cap)
+        sig_max = 2.0 * float(st.radii.max())
+        n_fb = 0
+        while True:
+            try:
+                S, q, f, V, info, warm = self.forces(c, dg, direction)
+                n_fb = int(np.count_nonzero(f > 0))
+                # an infeasible LCP (a self-stress tau >= 0 with tau . q < 0: a cluster the
+                # flow compresses) leaves w < 0 on the regularised active set: overlap
+                # dg |w| would grow this step.  Smaller steps give the reopened gaps more
+                # weight (h/dg); when no step size helps, the suspension is shear-jammed.
+                bad = max(0.0, -info.min_w)
+                feasible = (bad <= 1e-8 * max(1.0, float(np.abs(c.b).max()))
+                            and dg * bad <= self.overlap_tol)
+            except LCPFailure:
+                feasible, vmax = False, math.inf
+            if feasible:
+                vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
+                if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
+                    break
+            else:
+                self.infeasible_reductions += 1
+            dg *= 0.5 if feasible else 0.1
+            if dg < self.dg_min:
+                if not feasible:
+                    raise ShearJammed(
+                        f"suspension: shear-jammed at gamma = {st.gamma:.8g}: the contact "
+                        f"problem has no solution without overlap for any step >= "
+                        f"{self.dg_min:g} (a state of self-stress among "
+                        f"{n_fb} force-bearing "
+                        f"contacts that the flow compresses); stress is infinite at this N")
+                raise RuntimeError(f"suspension: step size fell below {self.dg_min:g} "
+                                   f"(max |V_na| = {vmax:.3g})")
+        t2 = time.perf_counter()
+        h_new = cell_at(st.h0, st.E, st.gamma + direction * dg)
+        st.s = st.s + dg * V @ np.linalg.inv(h_new).T
+        st.s -= np.floor(st.s)
+        st.gamma += direction * dg
+        active = f > 0
+        self._active_keys = self._keys(c)[active]
+        n_new = int(np.count_nonzero(active & ~warm))
+        n_coll = int(np.count_nonzero(active & ~warm & (c.gap > self.collision_gap)))
+        self.collisions += n_coll
+        self.singular_events += info.singular
+        omega = self.omega
+        sigma = stress.sigma(V, omega)
+        stats = StepStats(st.gamma, dg, sigma, stress.sigma_tb(f, c.b, omega, direction),
+                          stress.gap_work(f, c.gap, dg, omega),
+                          stress.pressure(f, c.dist, omega, st.d), len(c), int(active.sum()),
+                          n_new, n_coll, overlap, info,
+                          dict(search=t1 - t0, lcp=t2 - t1, update=time.perf_counter() - t2))
+        self.sigma, self.vmax, self.last_dg = sigma, vmax, dg
+        self.steps += 1
+        self.last_f, self.last_c, self.last_V = f, c, V
+        return stats
+
+    def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
+        """Step forward until ``strain`` more strain has been applied (the last step capped
+        to land on it); the per-step stats.  For tests and benchmarks: runs of a scene go
+        through the driver (``parflow.shear``)."""
+        out = []
+        target = self.state.gamma + strain
+        for _ in range(max_steps):
+            if self.state.gamma >= target:
+                break
+            out.append(self.step(1, target - self.state.gamma))
+            if callback is not None:
+                callback(self, out[-1])
+        return out
+
+    def checkpoint(self) -> dict:
+        """Everything a bit-identical continuation needs: the state, the step-control memory
+        (sigma, max |V_na| of the last step) and the warm active set, keyed by (i, j)."""
+        st = self.state
+        return dict(s=st.s.copy(), h0=st.h0.copy(), gamma=float(st.gamma), radii=st.radii.copy(),
+                    sigma=self.sigma, vmax=self.vmax, last_dg=self.last_dg,
+                    active_keys=self._active_keys.copy(),
+                    steps=self.steps, collisions=self.collisions, max_overlap=self.max_overlap,
+                    singular_events=self.singular_events,
+                    infeasible_reductions=self.infeasible_reductions,
+                    controls=dict(skin=self.skin, c=self.c, dmax=self.dmax, dg_max=self.dg_max,
+                                  dg_min=self.dg_min, factor=self.factor,
+                                  collision_gap=self.collision_gap,
+                                  overlap_tol=self.overlap_tol))
+
+    @classmethod
+    def restore(cls, ck: dict) -> "Suspension":
+        state = State(np.array(ck["s"], float), np.array(ck["h0"], float),
+                      velocity_gradient("shear", 2), float(ck["gamma"]), None,
+                      np.array(ck["radii"], float))
+        state.meta["model"] = "suspension"
+        sim = cls(state, **ck["controls"])
+        sim.sigma, sim.vmax = float(ck["sigma"]), float(ck["vmax"])
+        sim.last_dg = float(ck.get("last_dg", 0.0))
+        sim._active_keys = np.array(ck["active_keys"], np.int64)
+        sim.steps, sim.collisions = int(ck["steps"]), int(ck["collisions"])
+        sim.max_overlap = max(sim.max_overlap, float(ck["max_overlap"]))
+        sim.singular_events = int(ck["singular_events"])
+        sim.infeasible_reductions = int(ck.get("infeasible_reductions", 0))
+        return sim
