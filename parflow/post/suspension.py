@@ -1,0 +1,202 @@
+"""The suspension's numbers (paper Figs. 6-7; docs/suspensions.md).
+
+Statistics use the rows and analysis instants past ``observables.analysis_from_strain`` of
+the scene (the transient), or the last half of the run if the scene has none.  One run:
+strain-weighted averages of sigma, p, mu and z with block errors, and the power laws of
+Figs. 6b-d over its analysis instants (:func:`suspension_fits`).  Several runs: the same
+power laws with the instants of all runs pooled (:func:`pooled_fits`: one run spans a
+narrow range of sigma), sigma(dz), l_c(p), l_c(dz) and sigma = A (phi_c - phi)^(-beta)
+(:func:`across_suspension`, :func:`fit_phi_c`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .fits import fit_power_law_err
+
+PRED = dict(relaxation=2.0, delta_gamma=-1.0, omega_min=-0.5, sigma_dz=-2.7, lc_p=0.18,
+            lc_dz=-0.5)
+
+
+def _from_strain(run) -> float:
+    x = run.scene.get("observables", {}).get("analysis_from_strain")
+    strain = run.ts.get("strain")
+    if x:
+        return float(x)
+    return 0.5 * float(strain[-1]) if strain is not None and len(strain) else 0.0
+
+
+def window_rows(run) -> np.ndarray:
+    """Boolean mask of the rows in the statistics window (forward steps past the transient)."""
+    ts = run.ts
+    m = np.asarray(ts["strain"]) >= _from_strain(run)
+    if "step" in ts:
+        m &= np.asarray(ts["step"]) > 0
+    if "direction" in ts:
+        m &= np.asarray(ts["direction"]) > 0
+    return m
+
+
+def window_instants(run) -> list[dict]:
+    """The analysis instants in the statistics window."""
+    x0 = _from_strain(run)
+    return [a for a in run.analysis if float(a.get("strain", a.get("gamma", 0.0))) >= x0 - 1e-12]
+
+
+def _mean_err(x: np.ndarray, blocks: int = 10) -> tuple[float, float]:
+    """Mean and its error from block averages (the series is correlated)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return math.nan, math.nan
+    if x.size < 2 * blocks:
+        return float(x.mean()), float(x.std() / math.sqrt(max(x.size - 1, 1)))
+    b = np.array([c.mean() for c in np.array_split(x, blocks)])
+    return float(x.mean()), float(b.std(ddof=1) / math.sqrt(blocks))
+
+
+def _strain_weighted(x, w):
+    """Mean of x weighted by |w| (the strain of each step)."""
+    x, w = np.asarray(x, float), np.abs(np.asarray(w, float))
+    ok = np.isfinite(x) & (w > 0)
+    return float(np.sum(x[ok] * w[ok]) / np.sum(w[ok])) if ok.any() else math.nan
+
+
+def suspension_fits(run, relaxation=None) -> dict:
+    """Averages over the statistics window and the power laws of Figs. 6-7 for one run.
+
+    ``relaxation(gamma, dgamma, sigma, n_coll) -> dict``: the fit of dsigma/dgamma over
+    pairs of collision-free steps (``parflow.suspension.relaxation``), applied to the rows
+    of the window and stored as ``"relaxation"``; left out when None.  It is passed in, not
+    imported, because it still lives in ``parflow.suspension`` (with the stepper), which
+    post must not import."""
+    ts = run.ts
+    if "sigma" not in ts or "strain" not in ts:
+        return dict(model="suspension")
+    m = window_rows(run)
+    out = dict(model="suspension", phi=float(run.model_attrs.get("phi", run.param("phi", math.nan))),
+               N=int(run.param("N", 0) or 0), rows=int(m.sum()),
+               strain_window=(float(np.min(ts["strain"][m])) if m.any() else math.nan,
+                              float(np.max(ts["strain"][m])) if m.any() else math.nan))
+    dg = ts.get("dgamma", np.ones_like(ts["sigma"]))
+    for q in ("sigma", "pressure", "mu", "z", "z_all", "z2"):
+        if q in ts and m.any():
+            mean, err = _mean_err(ts[q][m])
+            out[q] = (_strain_weighted(ts[q][m], dg[m]), err)
+    if m.any() and "collisions" in ts:
+        st = ts["strain"][m]
+        span = float(st.max() - st.min())
+        dc = float(ts["collisions"][m][-1] - ts["collisions"][m][0])
+        out["collisions_per_strain"] = dc / span if span > 0 else math.nan
+    if relaxation is not None and m.sum() > 4 and "n_coll" in ts:
+        idx = np.flatnonzero(m)
+        rel = relaxation(ts["gamma"][idx], ts["dgamma"][idx], ts["sigma"][idx], ts["n_coll"][idx])
+        out["relaxation"] = rel
+    inst = window_instants(run)
+    rs = np.array([a.get("relax_sigma", np.nan) for a in inst], float)
+    rd = -np.array([a.get("relax_dsdg", np.nan) for a in inst], float)
+    out["relax_frozen"] = fit_power_law_err(rs, rd)
+    out["relax_frozen_points"] = (rs, rd)
+    rc = np.array([a.get("relax_C", np.nan) for a in inst], float)
+    rc = rc[np.isfinite(rc)]
+    out["relax_frozen"]["C_median"] = float(np.median(rc)) if rc.size else math.nan
+    # x axis: the stress of the frozen contact network at the instant, on which delta_gamma
+    # and omega_min are measured (the row's sigma belongs to the step, whose size it depends
+    # on; e.g. a leg's last step is cut short to end the leg)
+    sig = np.array([a.get("frozen_sigma", np.nan) for a in inst], float)
+    for key, q in (("delta_gamma", "delta_gamma"), ("omega_min", "frozen_omega_min")):
+        y = np.array([a.get(q, np.nan) for a in inst], float)
+        out[key] = fit_power_law_err(sig, y)
+        out[key + "_points"] = (sig, y)
+    for key in ("resp_l_c", "corr_length"):
+        y = np.array([a.get(key, np.nan) for a in inst], float)
+        y = y[np.isfinite(y) & (y > 0)]
+        out[key] = (float(np.median(y)), float(np.std(y) / math.sqrt(len(y)))) if y.size else (math.nan, math.nan)
+    out["instants"] = len(inst)
+    return out
+
+
+def fit_phi_c(phi, sigma, phi_max: float = 0.9) -> dict:
+    """sigma = A (phi_c - phi)^(-beta): phi_c by scanning, A and beta by least squares in
+    log-log at each phi_c; the phi_c of smallest residual.  NaN with fewer than 4 runs (three
+    parameters)."""
+    phi, sigma = np.asarray(phi, float), np.asarray(sigma, float)
+    ok = np.isfinite(phi) & np.isfinite(sigma) & (sigma > 0)
+    out = dict(phi_c=math.nan, beta=math.nan, rms=math.nan, n=int(ok.sum()))
+    if ok.sum() < 4:
+        return out
+    x, y = phi[ok], np.log(sigma[ok])
+    best = None
+    for pc in np.linspace(x.max() + 1e-4, phi_max, 4000):
+        X = np.log(pc - x)
+        a, b = np.polyfit(X, y, 1)
+        rms = float(np.sqrt(np.mean((y - (a * X + b)) ** 2)))
+        if best is None or rms < best[0]:
+            best = (rms, pc, -a)
+    out.update(rms=best[0], phi_c=float(best[1]), beta=float(best[2]))
+    return out
+
+
+def across_suspension(fits: list[dict]) -> dict:
+    """sigma(dz) and l_c(p), l_c(dz) across runs (dz = 4 - z2)."""
+    def col(key, k=0):
+        return np.array([f.get(key, (math.nan, math.nan))[k] for f in fits], float)
+    # dz from z2 (rattlers: fewer than 2 force-bearing contacts, removed iteratively): the
+    # d + 1 rule of jammed packings removes every particle of a flowing N = 4096 state
+    dz = 4.0 - col("z2")
+    out = dict(dz=dz, phi=np.array([f.get("phi", math.nan) for f in fits]), sigma=col("sigma"),
+               sigma_err=col("sigma", 1), p=col("pressure"), mu=col("mu"),
+               lc=col("resp_l_c"), lc_err=col("resp_l_c", 1), corr=col("corr_length"))
+    out["sigma_dz"] = fit_power_law_err(dz, out["sigma"], out["sigma_err"])
+    # the same with every particle counted (z_all): how much the rattler rule matters
+    out["dz_all"] = 4.0 - col("z_all")
+    out["sigma_dz_all"] = fit_power_law_err(out["dz_all"], out["sigma"], out["sigma_err"])
+    # DESIGN's rule (< d + 1 contacts, iteratively) where it leaves a backbone (z >= 3: at
+    # phi <= 0.825 it removes most particles of a flowing state, and z there means little)
+    z_dp1 = col("z")
+    out["dz_dp1"] = np.where(z_dp1 >= 3.0, 4.0 - z_dp1, np.nan)
+    out["sigma_dz_dp1"] = fit_power_law_err(out["dz_dp1"], out["sigma"], out["sigma_err"])
+    out["phi_c"] = fit_phi_c(out["phi"], out["sigma"])
+    out["lc_p"] = fit_power_law_err(out["p"], out["lc"])
+    out["lc_dz"] = fit_power_law_err(dz, out["lc"])
+    return out
+
+
+def pooled_points(fits: list[dict], key: str):
+    """Points (sigma, y, phi) of ``key`` pooled over the runs (one run covers a narrow range
+    of sigma; the power laws of Fig. 6 appear across phi)."""
+    xs, ys, ph = [], [], []
+    for f in fits:
+        x, y = f.get(key + "_points", (np.array([]), np.array([])))
+        xs.append(np.asarray(x, float))
+        ys.append(np.asarray(y, float))
+        ph.append(np.full(len(x), f.get("phi", math.nan)))
+    if not xs:
+        return np.array([]), np.array([]), np.array([])
+    return np.concatenate(xs), np.concatenate(ys), np.concatenate(ph)
+
+
+def pooled_fits(fits: list[dict]) -> dict:
+    """Power laws of Figs. 6b-d over the analysis instants of all runs, and delta_gamma
+    sigma (median, spread)."""
+    out = {}
+    for key in ("relax_frozen", "delta_gamma", "omega_min"):
+        x, y, _ = pooled_points(fits, key)
+        out[key] = fit_power_law_err(x, y)
+        ok = np.isfinite(x) & (x > 0)
+        out[key]["sigma_range"] = (float(x[ok].min()), float(x[ok].max())) if ok.any() else (math.nan, math.nan)
+    x, y, _ = pooled_points(fits, "delta_gamma")
+    ok = np.isfinite(x) & np.isfinite(y)
+    out["delta_gamma_sigma"] = (float(np.median(x[ok] * y[ok])), float(np.std(x[ok] * y[ok]))) if ok.any() else (math.nan, math.nan)
+    return out
+
+
+def suspension_across(fits: list[dict]) -> dict:
+    """Everything across several suspension runs: :func:`pooled_fits` and
+    :func:`across_suspension` in one dict (model "suspension")."""
+    out = pooled_fits(fits)
+    out.update(across_suspension(fits))
+    out["model"] = "suspension"
+    return out
