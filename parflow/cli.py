@@ -37,9 +37,24 @@ def _is_number(s: str) -> bool:
 
 
 def init_petsc(petsc_args: list[str]):
+    """Initialise PETSc with the command line's PETSc options.  If PETSc is initialised
+    already (``python -m parflow.spectrum`` imports it with the module, without arguments,
+    and petsc4py.init then has no effect), the options are put into its database instead."""
+    already = "petsc4py.PETSc" in sys.modules
     import petsc4py
     petsc4py.init([sys.argv[0]] + petsc_args)
     from petsc4py import PETSc
+    if already:
+        db, k = PETSc.Options(), 0
+        while k < len(petsc_args):
+            name, value = petsc_args[k], None
+            if k + 1 < len(petsc_args) and (not petsc_args[k + 1].startswith("-")
+                                            or _is_number(petsc_args[k + 1])):
+                value = petsc_args[k + 1]
+                k += 1
+            if name.startswith("-") and not _is_number(name):
+                db.setValue(name.lstrip("-"), value)
+            k += 1
     return PETSc
 
 
@@ -61,6 +76,16 @@ def collective(comm, fn, *args):
     if err is not None:
         raise InputError(err)
     return result
+
+
+def ranks_on_node(comm) -> int:
+    """How many ranks of ``comm`` run on the same machine as rank 0 (collective): they share
+    its memory."""
+    from mpi4py import MPI
+    if comm.getSize() == 1:
+        return 1
+    names = comm.tompi4py().gather(MPI.Get_processor_name(), root=0)
+    return names.count(names[0]) if names is not None else 0
 
 
 def _collective_cleanup():

@@ -74,7 +74,11 @@ def analyse_run(path: str, k: int = 3, progress=None) -> dict:
                              f"[observables] snapshot_every = n (a snapshot every n steps)")
         init = load_group(f["initial"])
         bd = init["bonds"]
-        if len(bd["i"]) > MAX_RODS:
+        nc = len(bd["i"])
+        if k > nc - 1:
+            raise InputError(f"--k {k}: the run has {nc} rods, so N has {nc} eigenvalues and "
+                             f"the shift-and-invert solver finds at most Nc - 1 = {nc - 1} of them")
+        if nc > MAX_RODS:
             raise InputError(f"{len(bd['i'])} rods: too many for the serial mode analysis "
                              f"(<= {MAX_RODS}); use python -m parflow.spectrum on single states")
         ts = f["timeseries"]
@@ -140,19 +144,35 @@ def plot(res: dict, png: str, title: str = "") -> None:
     os.replace(tmp, png)
 
 
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m parflow.modes", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", help="a chain or network run file with snapshots")
     ap.add_argument("--k", type=int, default=3, help="lowest modes per snapshot (default 3)")
     ap.add_argument("--output", default=None, help="HDF5 output (default RUN.modes.h5)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     ap.add_argument("--no-plot", action="store_true", help="do not draw modes.png")
     a = ap.parse_args(argv)
-    prog = "python -m parflow.modes"
+    prog = "parflow.modes"
     try:
         if a.k < 1:
             raise InputError(f"--k must be >= 1, got {a.k}")
+        if a.output is not None and not a.output.strip():
+            raise InputError("--output is empty: give a file name, or drop --output to write "
+                             "RUN.modes.h5")
         out = a.output or os.path.splitext(a.run)[0] + ".modes.h5"
+        if os.path.exists(a.run) and _same_file(a.run, out):
+            raise InputError(f"--output {out!r} is the run file itself: choose another file")
+        from .io import check_output_path, read_run
+        read_run(a.run).close()             # the input first: no folder made for a missing run
+        check_output_path(out, a.overwrite)
 
         def progress(c, n, step):
             if c % 20 == 0 or c == n:

@@ -101,29 +101,44 @@ def main(argv=None) -> int:
     c = sub.add_parser("compress", help="compress a run's state to a higher packing fraction")
     c.add_argument("run", help="a suspension run file (HDF5, from python -m parflow.shear)")
     c.add_argument("--phi", type=float, required=True, help="target packing fraction")
-    c.add_argument("--out", required=True, help="output .npz (a scene's model.configuration_file)")
+    c.add_argument("--out", required=True, help="output .npz (a scene's model.configuration_file); "
+                   "missing folders are created")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     c.add_argument("--from", dest="which", choices=("checkpoint", "initial"), default="checkpoint",
                    help="the run's state to start from (default: its checkpoint, the last state)")
     a = ap.parse_args(argv)
     try:
-        if not a.out.endswith(".npz"):
-            raise InputError(f"prepare: --out must end in .npz, got {a.out!r}")
+        if not a.out.endswith(".npz") or not os.path.basename(a.out)[:-4]:
+            raise InputError(f"prepare: --out must be a file name ending in .npz, got {a.out!r}")
+        if not np.isfinite(a.phi):
+            raise InputError(f"prepare: --phi must be a finite number, got {a.phi}")
         s, h0, gamma, radii, step = load_run_state(a.run, a.which)
+        from .io import check_output_path
+        if os.path.exists(a.out) and os.path.exists(a.run) and os.path.samefile(a.run, a.out):
+            raise InputError(f"prepare: --out {a.out!r} is the run file itself")
+        check_output_path(a.out, a.overwrite, "--out")
         X = rectangular_positions(s, h0, gamma)
         box = np.array([h0[0, 0], h0[1, 1]])
         pos, box1, info = compress(X, radii, box, a.phi)
         from .models import suspension as su
         state = su.from_configuration(pos, radii, box1, 0.0)    # checks: no overlap, phi < phi_J
     except InputError as exc:
-        print(f"python -m parflow.prepare: error: {exc}", file=sys.stderr)
+        print(f"parflow.prepare: error: {exc}", file=sys.stderr)
         return 2
     gap = su.min_gap(state)
     tmp = a.out[:-4] + ".part.npz"
-    np.savez(tmp, positions=pos, radii=radii, box=box1, gamma=0.0, source=os.path.abspath(a.run),
-             source_state=a.which, source_step=step, source_gamma=gamma, phi0=info["phi0"],
-             phi=state.meta["phi"], fire_iterations=info["fire_iterations"],
-             rms_move=info["rms_move"], min_gap=gap)
-    os.replace(tmp, a.out)
+    try:
+        np.savez(tmp, positions=pos, radii=radii, box=box1, gamma=0.0, source=os.path.abspath(a.run),
+                 source_state=a.which, source_step=step, source_gamma=gamma, phi0=info["phi0"],
+                 phi=state.meta["phi"], fire_iterations=info["fire_iterations"],
+                 rms_move=info["rms_move"], min_gap=gap)
+        os.replace(tmp, a.out)
+    except OSError as exc:              # checked above; the disk can still fill up
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        print(f"parflow.prepare: error: cannot write {a.out!r}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return 1
     print(f"{a.out}: N = {len(radii)}, phi {info['phi0']:.6g} -> {state.meta['phi']:.6g} "
           f"(from the {a.which} of {a.run}, step {step}, gamma = {gamma:.6g}); "
           f"{info['fire_iterations']} FIRE iterations, rms move {info['rms_move']:.3g} a0, "

@@ -152,10 +152,17 @@ def load_scene(text: str, source: str = "<scene>") -> dict:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{source}: malformed TOML: {exc}") from None
+    except RecursionError:
+        raise InputError(f"{source}: malformed TOML: arrays or tables nested too deeply") from None
     top = {k: v for k, v in raw.items() if not isinstance(v, dict)}
     for key, value in raw.items():
         if isinstance(value, dict) and key not in SECTIONS:
             raise _unknown(key, SECTIONS, "section ")
+    if not isinstance(raw.get("model"), dict):
+        raise InputError(f"{source}: the scene has no [model] table: add one naming the model "
+                         f"and its size, e.g. [model] name = \"chain\", N = 1000 "
+                         f"(models: {', '.join(MODELS)}; python -m parflow.shear --print-scene "
+                         f"shows a whole scene)")
     scene = _fill(top, SCHEMA[""], "")
     for section in SECTIONS:
         table = raw.get(section, {})
@@ -183,7 +190,9 @@ def load_scene(text: str, source: str = "<scene>") -> dict:
 
 
 def _model(table: dict) -> dict:
-    name = table.get("name", "chain")
+    if "name" not in table:
+        raise InputError(f"model.name is missing: name the model, one of {list(MODELS)}")
+    name = table["name"]
     if not isinstance(name, str):
         raise InputError(f"model.name must be a string, one of {list(MODELS)}")
     model = get_model(name)
@@ -221,6 +230,16 @@ def _legs(legs) -> list:
             raise InputError(f"{where[:-1]} has no stop rule: give one of {', '.join(STOP_KEYS)}")
         out.append(leg)
     return out
+
+
+def check_resources(scene: dict, n_ranks: int = 1, ranks_here: int | None = None) -> None:
+    """InputError if the scene's model is too large for this machine's memory on ``n_ranks``
+    ranks (``ranks_here`` of them on this machine): an estimate from measured bytes per rod /
+    particle / disc (``models.MEMORY``), checked before anything is allocated.  Reads the
+    machine, so call it on one rank (``cli.collective``), unlike load_scene."""
+    from .models import check_memory
+    check_memory(scene["model"]["name"], scene["model"], n_ranks, ranks_here,
+                 scene.get("solver", {}).get("parallel", "auto"))
 
 
 # what --set may change when a run is restarted: how it is integrated, solved and written,

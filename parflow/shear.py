@@ -50,13 +50,27 @@ def main(argv: list[str] | None = None) -> int:
     return run_main("parflow.shear", lambda: _run(args, petsc_args, PETSc))
 
 
+MAX_SCENE_BYTES = 1 << 20       # a scene is a page of TOML; more is not a scene file
+
+
 def _read(path):
     from .state import InputError
     try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_SCENE_BYTES + 1)
     except OSError as exc:
-        raise InputError(f"cannot read scene file {path!r}: {exc.strerror}") from None
+        raise InputError(f"cannot read scene file {path!r}: {exc.strerror or exc}") from None
+    if len(data) > MAX_SCENE_BYTES:
+        raise InputError(f"scene file {path!r} is larger than {MAX_SCENE_BYTES >> 20} MB: "
+                         f"it is not a scene (a TOML text file)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        col = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise InputError(f"scene file {path!r} is not UTF-8 text (byte 0x{data[exc.start]:02x} at "
+                         f"line {line}, column {col}): TOML is UTF-8; save the file as UTF-8 "
+                         f"(or it is not a scene file)") from None
 
 
 def _branch(src: str, dst: str, overwrite: bool) -> int:
@@ -113,14 +127,20 @@ def _restart_scene(path):
 
 
 def _run(args, petsc_args, PETSc) -> int:
+    from .cli import ranks_on_node
     from .io import check_output_path
     from .run import Run, setup_logging
-    from .scene import DEFAULT_SCENE, apply_settings, load_scene, with_overrides
-    from .solvers import insert_options
+    from .scene import DEFAULT_SCENE, apply_settings, check_resources, load_scene, with_overrides
+    from .solvers import check_options_on, insert_options
     from .state import InputError
 
     comm = PETSc.COMM_WORLD
     setup_logging(comm, args.quiet)
+    if args.output is not None and not args.output.strip():
+        raise InputError("--output is empty: give a file name, or drop --output to write the "
+                         "scene's output.path")
+    if args.max_steps is not None and args.max_steps <= 0:
+        raise InputError("--max-steps must be a positive integer")
     if args.restart:
         if args.scene:
             raise InputError("--restart FILE takes the scene from FILE: do not give a scene with it")
@@ -129,6 +149,19 @@ def _run(args, petsc_args, PETSc) -> int:
         scene = apply_settings(scene, before)    # the file's own settings, checked when they were given
         branch = bool(args.output)
         scene = apply_settings(scene, args.set, restart=True, branch=branch)
+    else:
+        if args.scene:
+            text, source = collective(comm, _read, args.scene), args.scene
+        else:
+            text, source = DEFAULT_SCENE, "<default scene>"
+        scene = apply_settings(with_overrides(load_scene(text, source), args.output), args.set)
+    # before anything is allocated or written: the size against the machine's memory, the
+    # PETSc options against PETSc (scene [petsc] table, then the command line, which wins)
+    collective(comm, check_resources, scene, comm.getSize(), ranks_on_node(comm))
+    cmdline = cmdline_option_names(petsc_args)
+    insert_options(scene["petsc"], cmdline)
+    check_options_on(comm, cmdline)
+    if args.restart:
         path = args.restart
         if branch:       # continue a copy of the run in another file; FILE is left as it is
             step = collective(comm, _branch, args.restart, args.output, args.overwrite)
@@ -137,21 +170,23 @@ def _run(args, petsc_args, PETSc) -> int:
             logging.getLogger("parflow").info("branching %s at its checkpoint (step %d) into %s",
                                               args.restart, step, path)
     else:
-        if args.scene:
-            text, source = collective(comm, _read, args.scene), args.scene
-        else:
-            text, source = DEFAULT_SCENE, "<default scene>"
-        scene = apply_settings(with_overrides(load_scene(text, source), args.output), args.set)
         path = scene["output"]["path"]
+        if args.scene and _same_file(args.scene, path):
+            raise InputError(f"the output {path!r} is the scene file itself: write the run to "
+                             f"another file (--output)")
         collective(comm, check_output_path, path, args.overwrite)
-    if args.max_steps is not None and args.max_steps <= 0:
-        raise InputError("--max-steps must be a positive integer")
-    insert_options(scene["petsc"], cmdline_option_names(petsc_args))
-    status = Run(scene, comm, path, quiet=args.quiet, cmdline_options=cmdline_option_names(petsc_args),
+    status = Run(scene, comm, path, quiet=args.quiet, cmdline_options=cmdline,
                  restart=bool(args.restart), max_steps=args.max_steps).execute()
     if not args.no_plots and comm.getRank() == 0:
         _plots(path, args.quiet)
     return 0 if status in ("complete", "jammed", "budget") else 1
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
 
 
 def _plots(path: str, quiet: bool) -> None:

@@ -99,6 +99,136 @@ def insert_options(options: dict[str, object], cmdline: set[str] | None = None) 
         db.setValue(name, str(value))
 
 
+# the options prefixes of parflow's PETSc/SLEPc objects: (kind, what it solves)
+PREFIXES = {"tau_": ("ksp", "force solver (N tau = b)"),
+            "contact_": ("ksp", "contact solver (suspension LCP)"),
+            "spec_": ("eps", "eigensolver (omega_min, spectra)")}
+_SCRATCH = "parflowcheck_"
+_OUTPUT_OPTIONS = ("monitor", "view", "log", "draw")     # printing options: not checked
+
+
+def petsc_message(exc: Exception) -> str:
+    """PETSc's own explanation of an error, on one line (the last line of its traceback,
+    which petsc4py carries in the exception text; e.g. "Unable to find requested PC type
+    nonsense")."""
+    lines = [ln.strip() for ln in str(exc).splitlines()]
+    lines = [ln.split("] ", 1)[1] if ln.startswith("[") and "] " in ln else ln for ln in lines]
+    lines = [ln for ln in lines if ln and "() at " not in ln and not ln.startswith("error code")]
+    return lines[-1] if lines else str(exc).strip()
+
+
+def options_under(prefix: str) -> dict[str, str | None]:
+    """The options in PETSc's database whose names begin with ``prefix`` (without dash)."""
+    return {k: v for k, v in PETSc.Options().getAll().items() if k.startswith(prefix)}
+
+
+def _rejected(prefix: str, exc: Exception, cmdline: set[str] | None = None, shown: str | None = None):
+    """InputError naming the options given under ``prefix`` that PETSc rejected (those whose
+    value PETSc's message quotes; else all of them) and what PETSc said."""
+    from .state import InputError
+    msg = petsc_message(exc)
+    given = {k: v for k, v in options_under(prefix).items()
+             if not any(w in k for w in _OUTPUT_OPTIONS)}
+    named = {k: v for k, v in given.items() if v not in (None, "") and
+             any(v == word.strip(".,:;()'\"") for word in msg.split())} or given
+    where = ""
+    if cmdline is not None:
+        src = {("command line" if k in cmdline else "scene's [petsc] table") for k in named}
+        where = f" ({' and '.join(sorted(src))})" if src else ""
+    opts = ", ".join(f"-{k}" + ("" if v in (None, "") else f" {v}") for k, v in sorted(named.items()))
+    what = PREFIXES.get(prefix, ("", shown or "solver"))[1]
+    return InputError(f"PETSc rejected option{'s' if len(named) > 1 else ''} {opts or prefix + '*'}"
+                      f"{where} of the {what}: {msg}; fix or drop "
+                      f"{'them' if len(named) > 1 else 'it'}")
+
+
+def set_from_options(obj, prefix: str) -> None:
+    """``obj.setFromOptions()`` (a KSP or an EPS with options prefix ``prefix``); an option
+    value PETSc rejects becomes an InputError naming the option (collective: every rank
+    parses the same options database at the same call)."""
+    try:
+        obj.setFromOptions()
+    except PETSc.Error as exc:
+        raise _rejected(prefix, exc) from None
+
+
+def check_options(cmdline: set[str] | None = None, prefixes=tuple(PREFIXES)) -> None:
+    """Parse the options given for each of parflow's solver prefixes (scene [petsc] table and
+    command line, already in PETSc's database) on scratch objects of this rank, before a run
+    allocates or writes anything: an unknown type, an unparsable number or a factorisation
+    package that is not installed is an InputError naming the option and what PETSc said.
+
+    The options are copied to a scratch prefix, so the real solvers still mark them as used
+    (the "set but not used" warning is unchanged); the scratch KSP is a CG (not PREONLY, which
+    skips the KSP options) with the code's Cholesky/CHOLMOD default, set up on a 4 x 4 SPD
+    matrix so that the factorisation package is looked up.  Call on one rank (``collective``)."""
+    db = PETSc.Options()
+    for prefix in prefixes:
+        given = {k: v for k, v in options_under(prefix).items()
+                 if not any(w in k for w in _OUTPUT_OPTIONS)}
+        if not given:
+            continue
+        kind = PREFIXES.get(prefix, ("ksp", ""))[0]
+        scratch = _SCRATCH + prefix
+        for k, v in given.items():
+            db.setValue(scratch + k[len(prefix):], v)
+        objs = []
+        try:
+            if kind == "eps":
+                try:
+                    from slepc4py import SLEPc
+                except ImportError:
+                    continue
+                eps = SLEPc.EPS().create(PETSc.COMM_SELF)
+                objs.append(eps)
+                eps.setOptionsPrefix(scratch)
+                eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+                eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+                st = eps.getST()
+                st.setType(SLEPc.ST.Type.SINVERT)
+                configure_cholesky(st.getKSP(), scratch + "st_", "mumps")
+                eps.setFromOptions()
+                ksp = st.getKSP()
+            else:
+                ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+                objs.append(ksp)
+                ksp.setOptionsPrefix(scratch)
+                configure_cholesky(ksp, scratch, "mumps")
+                ksp.setType(PETSc.KSP.Type.CG)
+                ksp.setFromOptions()
+            A = PETSc.Mat().createAIJ([4, 4], nnz=3, comm=PETSc.COMM_SELF)
+            objs.append(A)
+            for r in range(4):
+                A.setValue(r, r, 4.0)
+                if r:
+                    A.setValue(r, r - 1, -1.0)
+                    A.setValue(r - 1, r, -1.0)
+            A.assemble()
+            ksp.setOperators(A)
+            ksp.setUp()
+        except PETSc.Error as exc:
+            raise _rejected(prefix, exc, cmdline) from None
+        finally:
+            for o in objs:
+                o.destroy()
+            for k in list(db.getAll()):
+                if k.startswith(_SCRATCH):
+                    db.delValue(k)
+
+
+def check_options_on(comm, cmdline: set[str] | None = None) -> None:
+    """:func:`check_options` on rank 0, its InputError raised on every rank.  SLEPc is
+    imported on every rank first when eigensolver options are given: its initialisation and
+    finalisation are collective, and a SLEPc started on rank 0 alone hangs the exit."""
+    from .cli import collective
+    if options_under("spec_"):
+        try:
+            from slepc4py import SLEPc  # noqa: F401
+        except ImportError:
+            pass
+    collective(comm, check_options, cmdline)
+
+
 @dataclass
 class SolveInfo:
     reason: int = 0
@@ -122,7 +252,7 @@ class CholeskySolver:
         ksp.setOptionsPrefix(prefix)
         configure_cholesky(ksp, prefix, parallel)
         ksp.setOperators(A)
-        ksp.setFromOptions()
+        set_from_options(ksp, prefix)
         self.ksp = ksp
         self.r, _ = A.createVecs()
         self.dx, _ = A.createVecs()

@@ -164,7 +164,12 @@ def _interval(system, wmin: float, wmax: float | None) -> dict:
     opts = PETSc.Options()
     if not opts.hasName("spec_st_mat_mumps_icntl_13"):
         opts.setValue("spec_st_mat_mumps_icntl_13", 1)     # inertia needs the full factor
-    eps.setFromOptions()
+    from .solvers import set_from_options
+    try:
+        set_from_options(eps, "spec_")
+    except InputError:
+        eps.destroy()
+        raise
     try:
         eps.solve()
     except PETSc.Error as exc:
@@ -208,12 +213,30 @@ def main(argv: list[str] | None = None) -> int:
     return run_main("parflow.spectrum", lambda: _job(args, argv, petsc_args, PETSc))
 
 
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
 def _job(args, argv, petsc_args, PETSc) -> int:
     from . import __version__
     from .io import check_output_path
     from .run import git_commit, versions
+    from .io import open_hdf5
+    from .solvers import check_options_on
     comm = PETSc.COMM_WORLD
+    if args.output is not None and not args.output.strip():
+        raise InputError("--output is empty: give a file name, or drop --output to write "
+                         "STATE.spectrum.h5")
+    if args.method == "low" and args.k < 1:
+        raise InputError(f"--k must be >= 1, got {args.k}")
+    collective(comm, lambda p: open_hdf5(p).close(), args.state)   # the input exists, is HDF5
     out = args.output or os.path.splitext(args.state)[0] + ".spectrum.h5"
+    if collective(comm, _same_file, args.state, out):
+        raise InputError(f"--output {out!r} is the input file itself: choose another file")
+    check_options_on(comm, cmdline_option_names(petsc_args))   # -spec_..., -tau_...
     collective(comm, check_output_path, out, args.overwrite)
     state, prov = collective(comm, load_state, args.state, args.step)
     res = compute(comm, state, args.method, args.k, (args.omega_min, args.omega_max),
