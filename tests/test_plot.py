@@ -1,6 +1,7 @@
-"""parflow.plot on a small synthetic run file written directly with h5py (no solver, no MPI:
-under mpirun every rank runs these in its own tmp_path)."""
+"""parflow.plot and parflow.post on a small synthetic run file written directly with h5py
+(no solver, no MPI: under mpirun every rank runs these in its own tmp_path)."""
 
+import ast
 import os
 import subprocess
 import sys
@@ -10,6 +11,14 @@ import numpy as np
 import pytest
 
 from parflow import plot
+from parflow.plot import base as plot_base
+from parflow.plot import chain as plot_chain
+from parflow.plot import common as plot_common
+from parflow.post import chain as post_chain
+from parflow.post import fits as post_fits
+from parflow.post import network as post_network
+from parflow.post import report as post_report
+from parflow.post import suspension as post_suspension
 
 PNG = b"\x89PNG\r\n\x1a\n"
 ALL = ["chain_forward", "chain_reverse", "chain_correlation", "chain_lengths",
@@ -110,19 +119,19 @@ def test_fit_power_law_recovers_exponent():
     rng = np.random.default_rng(1)
     x = np.geomspace(1e-6, 1e-2, 400)
     y = 3e-4 * x ** -3.0 * np.exp(0.1 * rng.standard_normal(x.size))
-    p, A = plot.fit_power_law(x, y)
+    p, A = post_fits.fit_power_law(x, y)
     assert abs(p + 3) < 0.05
     assert abs(np.log(A / 3e-4)) < 0.5
     # binned, and restricted to a window
-    p2, _ = plot.fit_power_law(x, y, xmin=1e-5, xmax=1e-3, per_decade=8)
+    p2, _ = post_fits.fit_power_law(x, y, xmin=1e-5, xmax=1e-3, per_decade=8)
     assert abs(p2 + 3) < 0.05
-    assert np.isnan(plot.fit_power_law([1, 2], [1, 2])[0])      # too few points
+    assert np.isnan(post_fits.fit_power_law([1, 2], [1, 2])[0])      # too few points
 
 
 def test_chain_fits_on_synthetic_run(tmp_path):
     src = tmp_path / "run.h5"
     truth = _synthetic(src, noise=0.02)
-    fits = plot.chain_fits(plot.load_run(str(src)))
+    fits = post_chain.chain_fits(plot.load_run(str(src)))
     assert fits["gamma_c"]["attr"] == pytest.approx(GC)
     assert fits["gamma_c"]["fit"] == pytest.approx(GC, rel=1e-3)
     fw = fits["forward"]["fit"]
@@ -135,7 +144,7 @@ def test_chain_fits_on_synthetic_run(tmp_path):
                                                  abs=truth["x0"] * 0.05)
     assert abs(rev["tilde"]["V2"][0] + 1) < 0.05
     assert abs(fits["lengths"]["dtheta2^-1/2"][0] + 1.5) < 0.05
-    assert plot.format_fits(fits)                               # the CLI's summary lines
+    assert post_report.format_fits(fits)                        # the CLI's summary lines
 
 
 def test_main_default_outdir_and_skips(tmp_path, capsys):
@@ -160,10 +169,11 @@ def test_chain_figures_skip_without_their_data(tmp_path):
     src = tmp_path / "bare.h5"
     _synthetic(src, analysis=False, reverse=False, omega=False)
     run = plot.load_run(str(src))
-    fits = plot.chain_fits(run)
+    fits = post_chain.chain_fits(run)
     assert "reverse" not in fits and "lengths" not in fits
-    for func in (plot.fig_chain_reverse, plot.fig_chain_correlation, plot.fig_chain_lengths,
-                 plot.fig_chain_response, plot.fig_omega_min):
+    for func in (plot_chain.fig_chain_reverse, plot_chain.fig_chain_correlation,
+                 plot_chain.fig_chain_lengths, plot_chain.fig_chain_response,
+                 plot_common.fig_omega_min):
         with pytest.raises(plot.Skip):
             func(run, fits)
     res = plot.make_plots(str(src), str(tmp_path / "o"), only=["chain_lengths", "omega_min"])
@@ -330,7 +340,7 @@ def test_network_figures_and_fits_on_synthetic_run(tmp_path):
     assert resp["l_r_vs_sigma"]["exponent"] == pytest.approx(0.5, abs=1e-9)
     assert all(x["lr_over_sqrt_sigma"] == pytest.approx(2.5) for x in res_inst)
     assert all(x["B_sqrt_sigma"] == pytest.approx(0.2) for x in res_inst)
-    assert plot.format_fits(f)
+    assert post_report.format_fits(f)
 
 
 def test_fit_omega_star_sharp_and_scaled_gaps():
@@ -338,7 +348,7 @@ def test_fit_omega_star_sharp_and_scaled_gaps():
     for ws in (0.01, 0.05, 0.12):
         w = _gap_spectrum(ws, nc=4000)
         for frac in (0.3, 0.5, 0.7):
-            r = plot.fit_omega_star(w, fraction=frac, n_boot=0)
+            r = post_network.fit_omega_star(w, fraction=frac, n_boot=0)
             assert r["omega_star"] == pytest.approx(ws, abs=1.5 / (4000 * 0.4)), (ws, frac)
             assert r["D_plateau"] == pytest.approx(0.4, rel=0.01)
     # smooth edge D = Dp * min(1, (omega/wg)^2) below a flat plateau: omega* is proportional
@@ -347,13 +357,13 @@ def test_fit_omega_star_sharp_and_scaled_gaps():
         u = (np.arange(nc) + 0.5) / nc          # F(w) = Dp w^3 / (3 wg^2) below wg
         Fg = Dp * wg / 3
         return np.where(u < Fg, (3 * u * wg ** 2 / Dp) ** (1 / 3), wg + (u - Fg) / Dp)
-    a = plot.fit_omega_star(smooth(0.02), n_boot=0)["omega_star"]
-    b = plot.fit_omega_star(smooth(0.06), n_boot=0)["omega_star"]
+    a = post_network.fit_omega_star(smooth(0.02), n_boot=0)["omega_star"]
+    b = post_network.fit_omega_star(smooth(0.06), n_boot=0)["omega_star"]
     assert b / a == pytest.approx(3.0, rel=0.01)
     assert 0.02 * 2 / 3 * 0.9 < a < 0.02     # the "missing modes" of the edge: (2/3) wg
     # no plateau above the gap (gap too wide for the window): NaN, not a wrong number
-    assert np.isnan(plot.fit_omega_star(_gap_spectrum(0.5), n_boot=0)["omega_star"])
-    assert np.isnan(plot.fit_omega_star([0.1, 0.2])["omega_star"])
+    assert np.isnan(post_network.fit_omega_star(_gap_spectrum(0.5), n_boot=0)["omega_star"])
+    assert np.isnan(post_network.fit_omega_star([0.1, 0.2])["omega_star"])
 
 
 def test_fit_omega_star_exponent_on_random_spectra():
@@ -365,14 +375,14 @@ def test_fit_omega_star_exponent_on_random_spectra():
     for b in (1.0, 1.5):
         vals, errs = [], []
         for d in dz:
-            r = plot.fit_omega_star(_gap_spectrum(0.15 * (d / 0.4) ** b, nc=10_000, rng=rng),
+            r = post_network.fit_omega_star(_gap_spectrum(0.15 * (d / 0.4) ** b, nc=10_000, rng=rng),
                                     n_boot=100, seed=1)
             vals.append(r["omega_star"])
             errs.append(r["err"])
         vals, errs = np.array(vals), np.array(errs)
         assert np.all(errs > 0) and np.all(errs < 0.5 * vals)
         assert np.all(np.abs(vals - 0.15 * (dz / 0.4) ** b) < 4 * errs)
-        fit = plot.fit_power_law_err(dz, vals, errs)
+        fit = post_fits.fit_power_law_err(dz, vals, errs)
         assert fit["n"] == 5 and fit["dof"] == 3
         assert 0 < fit["err"] < 0.1
         assert abs(fit["exponent"] - b) < 3 * fit["err"]
@@ -381,17 +391,17 @@ def test_fit_omega_star_exponent_on_random_spectra():
 def test_fit_power_law_err():
     x = np.array([0.1, 0.2, 0.3, 0.4])
     y = 2.0 * x ** -0.5
-    f = plot.fit_power_law_err(x, y, 0.01 * y)
+    f = post_fits.fit_power_law_err(x, y, 0.01 * y)
     assert f["exponent"] == pytest.approx(-0.5, abs=1e-12)
     assert f["prefactor"] == pytest.approx(2.0)
     assert f["err"] > 0 and f["chi2"] == pytest.approx(0, abs=1e-12)
     # scatter larger than the error bars: the error grows with sqrt(chi2/dof)
     y2 = y * np.array([1.1, 0.9, 1.1, 0.9])
-    small = plot.fit_power_law_err(x, y2, 0.001 * y2)
-    large = plot.fit_power_law_err(x, y2, 0.1 * y2)
+    small = post_fits.fit_power_law_err(x, y2, 0.001 * y2)
+    large = post_fits.fit_power_law_err(x, y2, 0.1 * y2)
     assert small["err"] == pytest.approx(large["err"], rel=1e-6)   # Birge-scaled below
-    assert np.isnan(plot.fit_power_law_err([1.0], [1.0])["exponent"])
-    assert np.isnan(plot.fit_power_law_err([1.0, 2.0], [1.0, 2.0])["err"])   # no dof
+    assert np.isnan(post_fits.fit_power_law_err([1.0], [1.0])["exponent"])
+    assert np.isnan(post_fits.fit_power_law_err([1.0, 2.0], [1.0, 2.0])["err"])   # no dof
 
 
 def test_across_runs_figures_and_exponents(tmp_path, capsys):
@@ -417,7 +427,7 @@ def test_across_runs_figures_and_exponents(tmp_path, capsys):
     assert all(_is_png(p) for p in written)
     assert "across runs: omega* ~ dz^b" in err
     runs = [plot.load_run(p) for p in paths]
-    ac = plot.across_fits([plot.network_fits(r) for r in runs])
+    ac = post_network.across_fits([post_network.network_fits(r) for r in runs])
     assert ac["C"]["fit"]["exponent"] == pytest.approx(-0.5, abs=1e-6)
     assert ac["C2"]["fit"]["exponent"] == pytest.approx(0.5, abs=1e-6)
     assert ac["omega_star"]["fit"]["exponent"] == pytest.approx(1.0, abs=0.02)
@@ -425,7 +435,7 @@ def test_across_runs_figures_and_exponents(tmp_path, capsys):
     res = plot.make_across_plots(paths[:1], str(tmp_path / "one"))
     assert res.written == [] and not res.failed
     assert all("needs 2 or more network runs" in why for name, why in res.skipped
-               if name in {m for m, _, _ in plot.ACROSS_FIGURES})
+               if name in {s.name for s in plot.ACROSS_FIGURES if s.models == {"network"}})
 
 
 def test_network_run_without_analyses_skips_figures(tmp_path, capsys):
@@ -454,7 +464,7 @@ def test_network_run_without_analyses_skips_figures(tmp_path, capsys):
     assert not res.failed
     assert [os.path.basename(p) for p in res.written] == ["fig3a_sigma_z.png",
                                                            "fig3b_reverse_z.png"]
-    net_skipped = {n for n, _ in res.skipped if n in {m for m, k, _ in plot.ACROSS_FIGURES}}
+    net_skipped = {n for n, _ in res.skipped if n in ACROSS}
     assert net_skipped == {"fig4_omega_min_z", "fig5_dos_z"}
 
 
@@ -510,3 +520,145 @@ path = "{path}"
     assert len(f["omega_star"]["instants"]) >= 4
     assert f["reverse"]["branch"]["sigma"].size > 3
     comm.Barrier()
+
+
+# ---------------------------------------------------------------------------------------
+# Layers and the registry
+# ---------------------------------------------------------------------------------------
+PARFLOW = os.path.dirname(os.path.dirname(os.path.abspath(plot.__file__)))   # parflow/
+# what post/ and plot/ must never import (the solver side of parflow, PETSc, SLEPc)
+FORBIDDEN = ("parflow.models", "parflow.engines", "parflow.system", "parflow.solvers",
+             "parflow.spectrum", "parflow.dynamics", "parflow.algebra", "petsc4py", "slepc4py")
+
+
+def _imports(path: str, package: str) -> set:
+    """Every module imported anywhere in the file (relative imports resolved; ``from . import
+    x`` counts as module ``package.x``)."""
+    out = set()
+    for node in ast.walk(ast.parse(open(path).read(), path)):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module
+            out.add(mod)
+            if not node.module:
+                out.update(f"{mod}.{a.name}" for a in node.names)
+    return out
+
+
+def _package_imports(name: str) -> dict:
+    folder = os.path.join(PARFLOW, name)
+    files = sorted(f for f in os.listdir(folder) if f.endswith(".py"))
+    assert files, folder
+    return {f: _imports(os.path.join(folder, f), f"parflow.{name}") for f in files}
+
+
+@pytest.mark.parametrize("package", ["post", "plot"])
+def test_post_and_plot_never_import_the_solver_side(package):
+    for f, mods in _package_imports(package).items():
+        bad = sorted(m for m in mods if m.startswith(FORBIDDEN))
+        assert not bad, f"parflow/{package}/{f} imports {bad}"
+
+
+def test_post_imports_only_io_and_itself():
+    """post sits on parflow.io and numpy: no other parflow module, no matplotlib, no plot."""
+    for f, mods in _package_imports("post").items():
+        ours = {m for m in mods if m == "parflow" or m.startswith("parflow.")}
+        assert all(m == "parflow.io" or m.startswith("parflow.post") for m in ours), (f, ours)
+        assert not any(m.startswith(("matplotlib", "h5py")) for m in mods), (f, mods)
+
+
+def test_plot_imports_io_post_and_the_one_bridge():
+    """plot imports parflow.io, parflow.post and itself; the one exception is the lazy
+    import of parflow.suspension.relaxation in plot/suspension.py (a fit that has not
+    moved to post yet)."""
+    for f, mods in _package_imports("plot").items():
+        ours = {m for m in mods if m == "parflow" or m.startswith("parflow.")}
+        allowed = {"parflow.io"} | ({"parflow.suspension"} if f == "suspension.py" else set())
+        assert all(m in allowed or m.startswith(("parflow.post", "parflow.plot"))
+                   for m in ours), (f, ours)
+
+
+def test_registry_order_and_models():
+    """The figures, in the order they are drawn, each registered beside its definition with
+    the models it applies to; every model named has its fits registered."""
+    susp = ["fig6a_sigma", "fig6b_relaxation", "fig6c_delta_gamma", "fig6d_omega_min",
+            "fig6f_forces", "fig7a_correlation"]
+    assert [s.name for s in plot.FIGURES] == ALL + NET_FIGS + susp
+    assert [s.name for s in plot.ACROSS_FIGURES] == ACROSS + [
+        "fig6b_relaxation_phi", "fig6c_delta_gamma_phi", "fig6d_omega_min_phi",
+        "fig6e_sigma_dz", "fig7b_lengths"]
+    assert {s.name for s in plot.FIGURES if s.models is None} == {
+        "stress_strain", "step_diagnostics", "omega_min"}
+    for s in plot.FIGURES + plot.ACROSS_FIGURES:
+        assert s.models is None or s.models <= set(plot.MODELS), s
+        assert s.draw.__module__.startswith("parflow.plot."), s
+    assert all(len(s.models) == 1 for s in plot.ACROSS_FIGURES)
+    with pytest.raises(ValueError, match="registered twice"):
+        plot_base.figure("stress_strain")(lambda run, fits: None)
+    with pytest.raises(ValueError, match="exactly one model"):
+        plot_base.figure("x_across", across=True)
+    assert len(plot.FIGURES) == len(ALL + NET_FIGS + susp)      # nothing was added
+
+
+def test_model_tables(tmp_path):
+    """Fits, titles and summary lines are looked up by the model: a model without an entry
+    gets no fits, the generic title and no lines."""
+    src = tmp_path / "other.h5"
+    _synthetic(src, model="other", analysis=False)
+    run = plot.load_run(str(src))
+    assert plot.model_fits(run) == {}
+    assert plot_base.title(run, "x") == "x — other.h5 (other, N=64)"
+    assert post_report.format_fits({"model": "other", "a": 1}) == []
+    assert post_report.format_fits({"model": "other", "runs": [], "across": {}}) == []
+    res = plot.make_plots(str(src), str(tmp_path / "o"))
+    assert [os.path.basename(p) for p in res.written] == ["stress_strain.png",
+                                                          "step_diagnostics.png",
+                                                          "omega_min.png"]
+    chain = plot.load_run(str(_synthetic_path(tmp_path)))
+    assert plot_base.title(chain, "x") == "x — chain.h5 (chain, N=64, μ=0)"
+    assert plot.model_fits(chain)["model"] == "chain"
+
+
+def _synthetic_path(tmp_path):
+    p = tmp_path / "chain.h5"
+    _synthetic(p)
+    return p
+
+
+def test_documented_api_is_re_exported():
+    """parflow.plot keeps the fits it documents (their home is parflow.post)."""
+    assert plot.fit_omega_star is post_network.fit_omega_star
+    assert plot.network_fits is post_network.network_fits
+    assert plot.across_fits is post_network.across_fits
+    assert plot.chain_fits is post_chain.chain_fits
+    assert plot.format_fits is post_report.format_fits
+    for name in ("fit_power_law", "fit_power_law_err", "fit_divergence_point", "fit_window",
+                 "typical_dgamma", "log_bin"):
+        assert getattr(plot, name) is getattr(post_fits, name)
+
+
+def test_suspension_relaxation_is_passed_in(tmp_path):
+    """post.suspension.suspension_fits takes the collision-free relaxation fit as an
+    argument (post does not import the stepper); the plot layer passes
+    parflow.suspension.relaxation."""
+    src = tmp_path / "susp.h5"
+    _synthetic(src, model="suspension", analysis=False, omega=False, reverse=False)
+    with h5py.File(src, "a") as f:
+        n = f["timeseries/step"].shape[0]
+        f.create_dataset("timeseries/n_coll", data=np.zeros(n, int))
+    run = plot.load_run(str(src))
+    seen = []
+
+    def fake(gamma, dgamma, sigma, n_coll):
+        seen.append(len(gamma))
+        return dict(pairs=7, slope=2.0)
+    assert post_suspension.suspension_fits(run, fake)["relaxation"] == dict(pairs=7, slope=2.0)
+    assert seen and seen[0] == int(post_suspension.window_rows(run).sum())
+    assert "relaxation" not in post_suspension.suspension_fits(run)
+    rel = plot.model_fits(run)["relaxation"]
+    assert rel["pairs"] == seen[0] - 1          # every step collision-free

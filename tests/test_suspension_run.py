@@ -201,7 +201,6 @@ def test_suspension_figures(comm, mpi_tmp_path):
     """Every suspension figure is drawn from small runs (the across-phi ones from two runs),
     and the pooled fits see every analysis instant."""
     from parflow import plot
-    from parflow import plot_suspension as ps
     paths = []
     for phi in (0.78, 0.80):
         path = str(mpi_tmp_path / f"fig_{phi}.h5")
@@ -212,13 +211,14 @@ def test_suspension_figures(comm, mpi_tmp_path):
     comm.barrier()
     out = str(mpi_tmp_path / f"plots{comm.rank}")
     res = plot.make_plots(paths[1], outdir=out)
-    names = {n for n, _, _ in ps.FIGURES}
+    names = {s.name for s in plot.FIGURES if s.models == {"suspension"}}
     drawn = {os.path.splitext(os.path.basename(p))[0] for p in res.written}
     assert names - {"fig6b_relaxation"} <= drawn, (res.skipped, res.failed)
     assert not res.failed
     acr = plot.make_across_plots(paths, outdir=out)
-    assert {n for n, _, _ in ps.ACROSS_FIGURES} <= {os.path.splitext(os.path.basename(p))[0]
-                                                    for p in acr.written}, (acr.skipped, acr.failed)
+    across = {s.name for s in plot.ACROSS_FIGURES if s.models == {"suspension"}}
+    assert across <= {os.path.splitext(os.path.basename(p))[0]
+                      for p in acr.written}, (acr.skipped, acr.failed)
     ac = acr.fits["across"]
     n_inst = sum(1 for p in paths for a in plot.load_run(p).analysis
                  if np.isfinite(a["delta_gamma"]) and a["sigma"] > 0)
@@ -228,7 +228,7 @@ def test_suspension_figures(comm, mpi_tmp_path):
 
 
 def test_fit_phi_c_recovers_a_divergence():
-    from parflow.plot_suspension import fit_phi_c
+    from parflow.post.suspension import fit_phi_c
     phi = np.array([0.80, 0.81, 0.82, 0.825, 0.83, 0.835])
     sigma = 0.02 * (0.843 - phi) ** -2.1
     f = fit_phi_c(phi, sigma)

@@ -1,0 +1,247 @@
+"""What every figure module uses: the run-file reader (for now), :class:`Skip`, the figure
+registry with its :func:`figure` decorator, the per-model table (:func:`register_model`),
+and the drawing helpers (Agg canvas, reference slopes, fit lines, colours, titles).
+
+A figure module registers each figure beside its definition::
+
+    @figure("fig3b_reverse", models={"network"})
+    def fig3b_reverse(run, fits) -> Figure: ...
+
+    @figure("fig3b_reverse_z", models={"network"}, across=True)
+    def fig3b_reverse_z(runs, fits, across) -> Figure: ...
+
+``models=None``: the figure applies to every model.  An across-run figure is for exactly one
+model.  Figures are drawn in the order they are registered (the order in which
+``parflow.plot`` imports the figure modules).  A model's fits, the fits across its runs, the
+order of its runs and the extra words of its titles are given once per model by
+:func:`register_model`.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import h5py
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import LogNorm, Normalize
+from matplotlib.figure import Figure
+
+from ..io import FORMAT
+
+
+class RunFileError(Exception):
+    """FILE is missing or is not a parflow run file (reported as one line, exit status 2)."""
+
+
+class Skip(Exception):
+    """A figure whose data are absent: skipped, with the reason."""
+
+
+# ---------------------------------------------------------------------------------------
+# Reading.  A second reader of the run file, kept here for now: it is to be folded into
+# parflow.io (one reader of the format), which is why it is one function.
+# ---------------------------------------------------------------------------------------
+@dataclass
+class Run:
+    """The parts of a run file that the figures and fits use, read into memory."""
+    path: str
+    attrs: dict
+    model: str
+    model_attrs: dict
+    scene: dict
+    ts: dict                                        # name -> 1-D array
+    analysis: list = field(default_factory=list)    # dicts: attrs + arrays + "direction"
+
+    def param(self, name, default=None):
+        """A [model] parameter of the scene (e.g. mu, N)."""
+        return self.scene.get("model", {}).get(name, default)
+
+
+def load_run(path: str) -> Run:
+    """Read a parflow run file.  Raises :class:`RunFileError` with a one-line message.
+
+    The timeseries are cut to their common length; each analysis instant gets the
+    ``direction``, ``leg`` and ``row`` of its timeseries row."""
+    def text(v):
+        return v.decode() if isinstance(v, bytes) else v
+
+    def scalar(v):
+        v = text(v)
+        return v.item() if isinstance(v, np.generic) else v
+
+    if not os.path.exists(path):
+        raise RunFileError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise RunFileError(f"{path}: is a directory, not a parflow run file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise RunFileError(f"{path}: not a parflow run file (not an HDF5 file)") from None
+    with f:
+        if text(f.attrs.get("format")) != FORMAT:
+            raise RunFileError(f"{path}: not a parflow run file (format attribute is not "
+                               f"{FORMAT!r})")
+        attrs = {k: scalar(v) for k, v in f.attrs.items()}
+        try:
+            scene = tomllib.loads(str(attrs.get("scene", "")))
+        except tomllib.TOMLDecodeError:
+            scene = {}
+        model = str(attrs.get("model") or scene.get("model", {}).get("name", ""))
+        model_attrs = {k: scalar(v) for k, v in f["model"].attrs.items()} if "model" in f else {}
+        ts = {}
+        if "timeseries" in f:
+            for k, d in f["timeseries"].items():
+                if isinstance(d, h5py.Dataset) and d.ndim == 1:
+                    ts[k] = d[()]
+        n = min((len(v) for v in ts.values()), default=0)
+        ts = {k: v[:n] for k, v in ts.items()}
+        analysis = []
+        if "analysis" in f:
+            for key in sorted(f["analysis"]):
+                g = f["analysis"][key]
+                if not isinstance(g, h5py.Group):
+                    continue
+                a = {k: scalar(v) for k, v in g.attrs.items()}
+                a.setdefault("step", int(key) if key.isdigit() else -1)
+                for k, d in g.items():
+                    if isinstance(d, h5py.Dataset):
+                        a[k] = d[()]
+                analysis.append(a)
+    if "step" in ts and len(ts["step"]):          # tag each instant with its row
+        steps = ts["step"]
+        for a in analysis:
+            rows = np.nonzero(steps == a["step"])[0]
+            if rows.size:
+                r = rows[-1]
+                a.setdefault("direction", int(ts["direction"][r]) if "direction" in ts else 1)
+                a.setdefault("leg", int(ts["leg"][r]) if "leg" in ts else 0)
+                a["row"] = int(r)
+    return Run(path, attrs, model, model_attrs, scene, ts, analysis)
+
+
+# ---------------------------------------------------------------------------------------
+# Registry
+# ---------------------------------------------------------------------------------------
+class FigureSpec(NamedTuple):
+    """A registered figure: its name (the file stem), the models it applies to (None: any)
+    and the function that draws it."""
+    name: str
+    models: frozenset | None
+    draw: Callable
+
+
+FIGURES: list[FigureSpec] = []          # one run: draw(run, fits) -> Figure
+ACROSS_FIGURES: list[FigureSpec] = []   # several runs of one model: draw(runs, fits, across)
+
+
+def figure(name: str, models=None, across: bool = False):
+    """Register the decorated function as figure ``name`` for ``models`` (a set of model
+    names; None: every model), or with ``across`` as a figure across several runs of the
+    one model in ``models``."""
+    models = None if models is None else frozenset(models)
+    if across and (models is None or len(models) != 1):
+        raise ValueError(f"across-run figure {name!r} must name exactly one model")
+
+    def register(draw):
+        table = ACROSS_FIGURES if across else FIGURES
+        if any(s.name == name for s in FIGURES + ACROSS_FIGURES):
+            raise ValueError(f"figure {name!r} is registered twice")
+        table.append(FigureSpec(name, models, draw))
+        return draw
+    return register
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What the driver needs to know of a model beyond its figures."""
+    fits: Callable                      # fits(run) -> dict (the numbers of one run)
+    across: Callable | None = None      # across(list of fits) -> dict (several runs)
+    order: Callable | None = None       # sort key of its runs in across-run figures
+    title: Callable | None = None       # title(run, bits) -> bits (words of the titles)
+
+
+MODELS: dict[str, ModelSpec] = {}
+
+
+def register_model(name: str, fits: Callable, across: Callable | None = None,
+                   order: Callable | None = None, title: Callable | None = None) -> None:
+    """Give model ``name`` its fits, across-run fits, run order and title words."""
+    MODELS[name] = ModelSpec(fits, across, order, title)
+
+
+# ---------------------------------------------------------------------------------------
+# Figure helpers
+# ---------------------------------------------------------------------------------------
+def new_figure(w, h) -> Figure:
+    """A w x h inch figure on an Agg canvas (no pyplot), constrained layout."""
+    fig = Figure(figsize=(w, h), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def reference(ax, x0, y0, slope, span, label, **kw):
+    """A dashed power law y = y0 (x/x0)^slope over [x0/span, x0*span]."""
+    if not (np.isfinite(x0) and np.isfinite(y0) and x0 > 0 and y0 > 0):
+        return
+    xs = np.geomspace(x0 / span, x0 * span, 20)
+    kw.setdefault("color", "k")
+    ax.plot(xs, y0 * (xs / x0) ** slope, "--", lw=1.2, label=label, **kw)
+
+
+def fit_line(ax, fit, lo, hi, label, color):
+    """The fitted power law ``fit`` = (exponent, prefactor) over [lo, hi], thick and pale."""
+    p, A = fit
+    if np.isfinite(p) and np.isfinite(lo) and np.isfinite(hi):
+        xs = np.geomspace(lo, hi, 20)
+        ax.plot(xs, A * xs ** p, "-", color=color, lw=2.5, alpha=0.45, label=label)
+
+
+def anchor(fit, lo, hi):
+    """A point on the fitted line in the middle of the window (to hang reference slopes)."""
+    p, A = fit
+    if not (np.isfinite(p) and np.isfinite(lo) and np.isfinite(hi)):
+        return float("nan"), float("nan")
+    xm = math.sqrt(lo * hi)
+    return xm, A * xm ** p
+
+
+def positive(x, y):
+    """The points with x and y positive and finite."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y) & (x > 0) & (y > 0)
+    return x[ok], y[ok]
+
+
+QLABEL = {"V2": r"$\langle V^2\rangle$", "dtheta2": r"$\langle\Delta\theta^2\rangle$",
+          "thetadot2": r"$\langle\dot\theta^2\rangle$"}
+
+
+def title(run: Run, what: str) -> str:
+    """``what — FILE (model, N=..., and the model's own words)``."""
+    name = os.path.basename(run.path)
+    bits = [f"{run.model}"]
+    if run.param("N") is not None:
+        bits.append(f"N={run.param('N')}")
+    spec = MODELS.get(run.model)
+    if spec is not None and spec.title is not None:
+        bits = spec.title(run, bits)
+    return f"{what} — {name} ({', '.join(bits)})"
+
+
+def instant_colors(inst, key="V2", cmap="viridis"):
+    """One colour per analysis instant by its value of ``key`` (log scale), and the
+    mappable for the colour bar."""
+    v = np.array([float(a.get(key, np.nan)) for a in inst])
+    ok = np.isfinite(v) & (v > 0)
+    if ok.sum() >= 2 and v[ok].max() > v[ok].min():
+        norm = LogNorm(v[ok].min(), v[ok].max())
+    else:
+        norm = Normalize(0, 1)
+    sm = ScalarMappable(norm=norm, cmap=cmap)
+    cols = [sm.to_rgba(x) if np.isfinite(x) and x > 0 else (0.5, 0.5, 0.5, 1) for x in v]
+    return cols, sm
