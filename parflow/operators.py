@@ -192,3 +192,8 @@ class RigidityOperators:
 def _mpi_max():
     from mpi4py import MPI
     return MPI.MAX
+
+
+def petsc_version() -> str:
+    """The PETSc library's version, e.g. "3.18.5" (for the run file's provenance)."""
+    return ".".join(map(str, PETSc.Sys.getVersion()))

@@ -18,12 +18,17 @@ Triggers (small, comparable, printable; ``str()`` names the schedule in logs and
 * ``FirstOf(t1, t2, ...)``  -- the first of its triggers that fires; the later ones are not
   asked then (their memory does not move), as the analysis schedule has always worked
 * ``Never()``
+
+Legs (:class:`Leg`) are the protocol's stretches of one flow direction with their stop rules;
+:class:`EtaEstimate` turns the progress through a leg into the ETA of the progress line.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass
+
+import numpy as np
 
 _NO_LEVEL = -10**9      # how run files before the schedule-as-data code stored "no decade yet"
 
@@ -247,3 +252,68 @@ def analysis_trigger(obs_cfg: dict) -> Trigger:
 def analyses_enabled(obs_cfg: dict) -> bool:
     c = obs_cfg
     return bool(c["analysis_every"] or c["analysis_per_decade"] or c["analysis_strain"])
+
+
+class Leg:
+    """Stop rules of one leg of the protocol, and its progress for the ETA."""
+
+    def __init__(self, spec: dict, index: int, n_legs: int):
+        self.spec, self.index, self.n_legs = spec, index, n_legs
+        self.direction = +1 if spec["direction"] == "forward" else -1
+
+    def reason_to_stop(self, obs: dict, leg_strain: float, leg_steps: int) -> str | None:
+        sp = self.spec
+        for q in ("sigma", "V2"):
+            if f"{q}_above" in sp and obs[q] >= sp[f"{q}_above"]:
+                return f"{q} = {obs[q]:.4g} >= {sp[f'{q}_above']:g}"
+            if f"{q}_below" in sp and obs[q] <= sp[f"{q}_below"]:
+                return f"{q} = {obs[q]:.4g} <= {sp[f'{q}_below']:g}"
+        if "strain" in sp and leg_strain >= sp["strain"] * (1 - 1e-12):
+            return f"leg strain {leg_strain:.6g} reached"
+        if "max_steps" in sp and leg_steps >= sp["max_steps"]:
+            return f"leg step budget {sp['max_steps']} used"
+        return None
+
+    def fraction(self, obs: dict, start: dict, leg_strain: float, leg_steps: int) -> float:
+        sp, f = self.spec, 0.0
+        for q in ("sigma", "V2"):
+            x, x0 = obs[q], start[q]
+            if x > 0 and x0 > 0:
+                if f"{q}_above" in sp and sp[f"{q}_above"] > x0:
+                    f = max(f, math.log(x / x0) / math.log(sp[f"{q}_above"] / x0))
+                if f"{q}_below" in sp and sp[f"{q}_below"] < x0:
+                    f = max(f, math.log(x0 / x) / math.log(x0 / sp[f"{q}_below"]))
+        if "strain" in sp:
+            f = max(f, leg_strain / sp["strain"])
+        if "max_steps" in sp:
+            f = max(f, leg_steps / sp["max_steps"])
+        return min(max(f, 0.0), 1.0)
+
+
+class EtaEstimate:
+    """Leg ETA from the recent rate of progress (the fraction of the leg done, measured in
+    log sigma or log V2 for stress targets): approaching jamming, progress slows down, so the
+    rate over the last ~30 s is a better guide than the average since the leg began.  The
+    window also spans at least ``min_steps`` steps: with steps of 10 s or more (N = 10^6) a
+    30 s window sees a few steps, and sigma's own ups and downs swamp the trend."""
+
+    def __init__(self, window: float = 30.0, min_steps: int = 30):
+        self.window, self.min_steps = window, min_steps
+        self.hist: list[tuple[float, float, int]] = []
+
+    def update(self, now: float, frac: float, step: int = 0) -> float:
+        self.hist.append((now, frac, step))
+        while len(self.hist) > 2 and now - self.hist[1][0] > self.window \
+                and step - self.hist[1][2] >= self.min_steps:
+            self.hist.pop(0)
+        t0, f0, _ = self.hist[0]
+        if now <= t0 or frac <= f0:
+            return float("nan")
+        return (1.0 - frac) * (now - t0) / (frac - f0)
+
+
+def hms(t: float) -> str:
+    if not np.isfinite(t):
+        return "--:--:--"
+    t = int(t)
+    return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"

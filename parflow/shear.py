@@ -104,10 +104,10 @@ def _branch(src: str, dst: str, overwrite: bool) -> int:
 
 def _restart_scene(path):
     """The scene text and stored settings of the run file ``path``, after checking that its
-    checkpoint can be restarted from (``run.check_checkpoint``): a hostile or damaged file
+    checkpoint can be restarted from (``checkpoint.check_checkpoint``): a hostile or damaged file
     is refused here, before the restart (or a branch) touches anything."""
     from .io import read_run
-    from .run import check_checkpoint
+    from .checkpoint import check_checkpoint
     from .scene import load_scene
     from .state import InputError
     f = read_run(path)

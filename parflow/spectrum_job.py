@@ -223,7 +223,7 @@ def _same_file(a: str, b: str) -> bool:
 def _job(args, argv, petsc_args, PETSc) -> int:
     from . import __version__
     from .io import check_output_path
-    from .run import git_commit, versions
+    from .provenance import git_commit, versions
     from .io import open_hdf5
     from .solvers import check_options_on
     comm = PETSc.COMM_WORLD

@@ -147,8 +147,50 @@ class State:
     def volume(self) -> float:
         return float(abs(np.linalg.det(self.h0)))
 
+    def to_groups(self) -> dict:
+        """The run file's /initial group (and any saved state): s, h0, E, bonds/{i, j, shift,
+        l0}, radii -- the one mapping between a State and HDF5 (``from_groups`` reads it)."""
+        arrays = dict(s=self.s, h0=self.h0, E=self.E)
+        if self.bonds is not None:
+            bd = self.bonds
+            arrays["bonds"] = dict(i=bd.i, j=bd.j, shift=bd.shift, l0=bd.l0)
+        if self.radii is not None:
+            arrays["radii"] = self.radii
+        return arrays
+
+    @classmethod
+    def from_groups(cls, g: dict, gamma: float = 0.0, meta: dict | None = None) -> "State":
+        """The State of a group written by ``to_groups`` (a dict of arrays, as
+        ``io.load_group`` gives it), at strain ``gamma``."""
+        bonds = None
+        if "bonds" in g:
+            bd = g["bonds"]
+            bonds = Bonds(bd["i"], bd["j"], bd["shift"], bd["l0"])
+        return cls(g["s"], g["h0"], g["E"], gamma, bonds, g.get("radii"), meta=dict(meta or {}))
+
     def copy(self) -> "State":
         return State(self.s.copy(), self.h0.copy(), self.E.copy(), float(self.gamma),
                      None if self.bonds is None else Bonds(self.bonds.i.copy(), self.bonds.j.copy(),
                                                            self.bonds.shift.copy(), self.bonds.l0.copy()),
                      None if self.radii is None else self.radii.copy(), dict(self.meta))
+
+
+@dataclass(frozen=True)
+class Instant:
+    """What every analysis and instant hook of a model gets (``models.base``): one instant
+    of a run.
+
+    comm:      the run's PETSc communicator
+    state:     the State at this instant (current s and gamma)
+    F:         the forces there (bonded: dynamics.bonded.Force; contacts: engines.ContactForce)
+    system:    bonded models: the BondedSystem, N loaded at this configuration; else None
+    scene:     the run's scene (``scene["model"]`` holds the model's parameters)
+    direction: the flow direction of the current leg (+1 forward, -1 reversed)
+    """
+
+    comm: object
+    state: State
+    F: object
+    system: object | None
+    scene: dict
+    direction: int = 1

@@ -240,7 +240,7 @@ def test_every_scene_in_runs_is_valid():
 def test_eta_window_spans_enough_steps():
     """The leg ETA uses at least 30 s and 30 steps of history: slow steps whose progress
     goes up and down do not make it jump."""
-    from parflow.run import EtaEstimate
+    from parflow.protocol import EtaEstimate
     eta = EtaEstimate(window=30.0, min_steps=30)
     # 15 s per step; progress 0.001 per step on average, alternating +0.003 / -0.001
     frac, out = 0.0, []

@@ -19,10 +19,17 @@ from parflow.models import network as nw
 from parflow.models import network_build as nb
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
-from parflow.state import Bonds, InputError, State
+from parflow.state import Bonds, InputError, Instant, State
 from parflow.solvers import SingularOperator
 from parflow.dynamics.bonded import BondedSystem
 from systems import dense_operators
+
+
+def _instant(system, state, F, **params):
+    """An analysis instant of a network with the scene's model parameters ``params``."""
+    model = {k: v[1] for k, v in nw.PARAMS.items()}
+    model.update(params)
+    return Instant(PETSc.COMM_WORLD, state, F, system, {"model": model})
 
 PARAMS = dict(N=128, z=3.8, phi=0.88)
 
@@ -249,8 +256,8 @@ def test_spectrum_against_eigvalsh(strained):
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     F = sysm.evaluate(st.s, st.gamma)
     for mode in ("dense", "low"):
-        st.meta.update(spectrum=mode, n_low=4, correlation=0, response_rods=2)
-        out = nw.analyses(sysm, st, F)
+        out = nw.analyses(_instant(sysm, st, F, spectrum=mode, n_low=4, correlation=False,
+                                   response_rods=2))
         if mode == "dense":
             np.testing.assert_allclose(out["arrays"]["omega"] ** 2, lam, rtol=1e-9, atol=1e-12)
             edges, D = out["arrays"]["dos_edges"], out["arrays"]["dos"]
@@ -538,9 +545,8 @@ def test_correlation_method_by_size(monkeypatch, comm, strained):
     F = sysm.evaluate(st.s, st.gamma)
     monkeypatch.setattr(corr, "CORR_EXACT_MAX", st.n - 1)
     for method, expect in (("auto", "fft"), ("exact", "exact"), ("fft", "fft")):
-        st.meta.update(correlation=1, corr_method=method, corr_dr=0.25, spectrum="none",
-                       response_rods=1)
-        res = nw.analyses(sysm, st, F)
+        res = nw.analyses(_instant(sysm, st, F, correlation=True, corr_method=method,
+                                   corr_dr=0.25, spectrum="none", response_rods=1))
         assert res["scalars"]["corr_method"] == expect
         local = corr.correlation(st.s, F.h, F.V_na, 0.25, 0.0, expect)
         np.testing.assert_array_equal(res["arrays"]["corr_C"], local["C"])

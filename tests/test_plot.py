@@ -572,13 +572,11 @@ def test_post_imports_only_io_and_itself():
         assert not any(m.startswith(("matplotlib", "h5py")) for m in mods), (f, mods)
 
 
-def test_plot_imports_io_post_and_the_one_bridge():
-    """plot imports parflow.io, parflow.post and itself; the one exception is the lazy
-    import of parflow.suspension.relaxation in plot/suspension.py (a fit that has not
-    moved to post yet)."""
+def test_plot_imports_io_post_and_itself():
+    """plot imports parflow.io, parflow.post and itself, nothing else of parflow."""
     for f, mods in _package_imports("plot").items():
         ours = {m for m in mods if m == "parflow" or m.startswith("parflow.")}
-        allowed = {"parflow.io"} | ({"parflow.suspension"} if f == "suspension.py" else set())
+        allowed = {"parflow.io"}
         assert all(m in allowed or m.startswith(("parflow.post", "parflow.plot"))
                    for m in ours), (f, ours)
 
@@ -643,9 +641,8 @@ def test_documented_api_is_re_exported():
 
 
 def test_suspension_relaxation_is_passed_in(tmp_path):
-    """post.suspension.suspension_fits takes the collision-free relaxation fit as an
-    argument (post does not import the stepper); the plot layer passes
-    parflow.suspension.relaxation."""
+    """post.suspension.suspension_fits applies a collision-free relaxation fit (its own
+    post.suspension.relaxation unless another is given, None for none)."""
     src = tmp_path / "susp.h5"
     _synthetic(src, model="suspension", analysis=False, omega=False, reverse=False)
     with h5py.File(src, "a") as f:
@@ -659,6 +656,6 @@ def test_suspension_relaxation_is_passed_in(tmp_path):
         return dict(pairs=7, slope=2.0)
     assert post_suspension.suspension_fits(run, fake)["relaxation"] == dict(pairs=7, slope=2.0)
     assert seen and seen[0] == int(post_suspension.window_rows(run).sum())
-    assert "relaxation" not in post_suspension.suspension_fits(run)
+    assert "relaxation" not in post_suspension.suspension_fits(run, None)
     rel = plot.model_fits(run)["relaxation"]
     assert rel["pairs"] == seen[0] - 1          # every step collision-free

@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import nnls
 
 from parflow import geometry
-from parflow import suspension as su
+from parflow.post import suspension as su
 from parflow.dynamics import hard_discs as hd
 from parflow.dynamics import lcp as co
 from parflow.models import suspension as msu

@@ -149,7 +149,6 @@ def test_delta_gamma_finds_the_chain_jamming_strain():
 def test_freeze_keeps_force_bearing_contacts():
     from parflow.dynamics.engines import ContactEngine
     state = msu.make_suspension(128, 0.80, seed=2)
-    state.meta.update(msu.controls({}))
     scene = load_scene('[model]\nname = "suspension"\nN = 128\n[[protocol.leg]]\n'
                        'direction = "forward"\nstrain = 1\n')
     eng = ContactEngine(PETSc.COMM_SELF, state, scene, msu)

@@ -21,17 +21,11 @@ import dataclasses
 import numpy as np
 
 from ..observables import stress
-from ..observables.contacts import coordination
 from ..spectrum import lowest_omega, on_force_factor
-from ..state import InputError, State
+from ..state import InputError, Instant, State
 from .bonded import BondedSystem, resolve_reuse
 from .hard_discs import ShearJammed, Suspension
 from .heun import Heun, Jammed, StepControl
-
-
-def _at(state: State, s: np.ndarray, gamma: float) -> State:
-    """The state at the current instant (positions s, strain gamma), for model analyses."""
-    return dataclasses.replace(state, s=s, gamma=gamma)
 
 
 class BondedEngine:
@@ -40,27 +34,37 @@ class BondedEngine:
     kind = "bonded"
 
     def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
-        self.state, self.model = state, model
+        self.comm, self.state, self.model, self.scene = comm, state, model, scene
         self.control = StepControl(**scene["integrator"])
         self.control.validate()
         sol = scene["solver"]
         reuse = resolve_reuse(sol["reuse_factor"], len(state.bonds), sol["preset"],
-                              getattr(model, "FACTOR_REUSE", False))
+                              model.FACTOR_REUSE)
         self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
         err_prev = None if ck is None else ck.get("err_prev")
         self.integ = Heun(self.system, self.control,
                           err_prev=float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
+        # the engine owns the evolving state: state.s and state.gamma are always current
         if ck is None:
-            self.s, self.gamma, self.dg = state.s.copy(), state.gamma, self.control.initial_dgamma
+            state.s, self.dg = state.s.copy(), self.control.initial_dgamma
         else:
-            self.s, self.gamma, self.dg = ck["s"], ck["gamma"], ck["dgamma"]
+            state.s, state.gamma, self.dg = ck["s"], ck["gamma"], ck["dgamma"]
+        self.direction = 1          # of the last step (bonded analyses do not depend on it)
         # a checkpoint's rod forces: the restart continues from the very numbers the run had
         # (a force solved with a reused factor differs from a fresh solve by round-off)
         self._tau0 = None if ck is None else ck.get("tau")
         self.F = None
         self.res = None
+
+    @property
+    def s(self) -> np.ndarray:
+        return self.state.s
+
+    @property
+    def gamma(self) -> float:
+        return self.state.gamma
 
     @property
     def parallel(self) -> str:
@@ -85,7 +89,8 @@ class BondedEngine:
 
     def step(self, direction: int, cap: float | None) -> float:
         res = self.integ.step(self.s, self.gamma, self.F, direction, self.dg, dg_cap=cap)
-        self.s, self.gamma, self.F, self.dg = res.s, res.gamma, res.F, res.next_dgamma
+        self.state.s, self.state.gamma, self.F, self.dg = res.s, res.gamma, res.F, res.next_dgamma
+        self.direction = direction
         self.res = res
         return res.dgamma
 
@@ -113,9 +118,13 @@ class BondedEngine:
             self._spec = on_force_factor(self.system, self.n_eigs)
         return lowest_omega(self._spec)
 
-    def analyses(self) -> dict:
+    def instant(self) -> Instant:
+        """This instant for the model's analyses (N loaded at the current configuration)."""
         self.system.sync()
-        return self.model.analyses(self.system, _at(self.state, self.s, self.gamma), self.F)
+        return Instant(self.comm, self.state, self.F, self.system, self.scene, self.direction)
+
+    def analyses(self) -> dict:
+        return self.model.analyses(self.instant())
 
     def snapshot(self) -> dict:
         return dict(s=self.s, V_na=self.F.V_na, tau=self.F.tau)
@@ -149,6 +158,8 @@ class ContactForce:
     f: np.ndarray        # contact forces (>= 0, compressive)
     V_na: np.ndarray     # (N, d)
     sigma: float
+    omega: float         # the cell's volume Omega
+    direction: int       # the flow direction these forces are for (+1 / -1)
     # -<f|h>/dg / Omega of the step these forces are for, so that sigma = sigma_fb + gap_work
     # (complementarity of the LCP with q = b + h/dg, DESIGN §5): at the first row, before any
     # step, it is that of the step probe() solved for (the first step's), not zero
@@ -162,10 +173,16 @@ class ContactEngine:
 
     def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
         self.comm, self.state, self.model, self.scene = comm, state, model, scene
+        controls = {k: scene["model"][k] for k in Suspension.CONTROLS}
         if ck is None:
-            self.sim = Suspension(state, **model.controls(state.meta))
+            self.sim = Suspension(state, **controls)
         else:
-            self.sim = Suspension.restore(model.restore_dict(state, ck))
+            self.sim = Suspension.restore(dict(
+                s=ck["s"], h0=state.h0, gamma=ck["gamma"], radii=state.radii, sigma=ck["sigma"],
+                vmax=ck["vmax"], last_dg=ck.get("dgamma", 0.0), active_keys=ck["active_keys"],
+                steps=ck["steps"], collisions=ck["collisions"], max_overlap=ck["max_overlap"],
+                singular_events=ck["singular_events"],
+                infeasible_reductions=ck["infeasible_reductions"], controls=controls))
             self.state = self.sim.state
             self.state.meta.update(state.meta)
         self.stats = None
@@ -198,8 +215,8 @@ class ContactEngine:
         sim, st = self.sim, self.sim.state
         direction = self._direction if direction is None else direction
         c, f, V, dg = sim.probe(direction)
-        return ContactForce(st.gamma, st.h, c, f, V, stress.sigma(V, sim.omega),
-                            stress.gap_work(f, c.gap, dg, sim.omega))
+        return ContactForce(st.gamma, st.h, c, f, V, stress.sigma(V, sim.omega), sim.omega,
+                            direction, stress.gap_work(f, c.gap, dg, sim.omega))
 
     def start(self):
         self.F = self.probe(+1)
@@ -215,19 +232,15 @@ class ContactEngine:
             raise Jammed(str(exc)) from None
         st = sim.state
         self.F = ContactForce(st.gamma, st.h, sim.last_c, sim.last_f, sim.last_V, self.stats.sigma,
-                              self.stats.gap_work)
+                              sim.omega, direction, self.stats.gap_work)
         return st.gamma - g0
 
     def observe(self) -> dict:
         sim, F = self.sim, self.F
-        n = self.state.n
-        fb_sigma = stress.sigma_tb(F.f, F.c.b, sim.omega, self._direction)
-        p = stress.pressure(F.f, F.c.dist, sim.omega, self.state.d)
-        z = coordination(F.c, F.f, n, self.state.d)
-        return dict(sigma=F.sigma, sigma_fb=fb_sigma, pressure=p,
-                    mu=F.sigma / p if p > 0 else float("nan"),
-                    V2=stress.V2(F.V_na),
-                    max_overlap=sim.max_overlap, collisions=sim.collisions, **z)
+        obs = dict(sigma=F.sigma, V2=stress.V2(F.V_na), max_overlap=sim.max_overlap,
+                   collisions=sim.collisions)
+        obs.update(self.model.observables(self.state, F))
+        return obs
 
     def row(self) -> dict:
         st = self.stats
@@ -256,15 +269,19 @@ class ContactEngine:
         PETSc.garbage_cleanup(PETSc.COMM_SELF)
         PETSc.garbage_cleanup(self.comm)        # collective: every rank is here
 
+    def instant(self) -> Instant:
+        """This instant for the model: the forces probed at the current configuration."""
+        return Instant(self.comm, self.state, self.probe(), None, self.scene, self._direction)
+
     def omega_min(self) -> float:
         try:
-            return self.model.frozen_omega_min(self.comm, self.state, self.probe(), self.scene)
+            return self.model.omega_min(self.instant())
         finally:
             self._cleanup()
 
     def analyses(self) -> dict:
         try:
-            return self.model.analyses(self.comm, self.state, self.probe(), self.scene, self._direction)
+            return self.model.analyses(self.instant())
         finally:
             self._cleanup()
 
@@ -294,8 +311,7 @@ class ContactEngine:
 
 
 def make_engine(comm, state: State, scene: dict, model, ck: dict | None = None):
-    kind = getattr(model, "ENGINE", "bonded")
-    if kind == "contacts":
+    if model.ENGINE == "contacts":
         return ContactEngine(comm, state, scene, model, ck)
     if state.bonds is None:
         raise InputError(f"model {scene['model']['name']!r} built a state without bonds")

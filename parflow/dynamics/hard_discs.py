@@ -77,6 +77,9 @@ class ShearJammed(RuntimeError):
 class Suspension:
     """Stepper for a hard-disc suspension state (radii set, no bonds)."""
 
+    # the step controls: keyword arguments of __init__, keys of the model's [model] table
+    CONTROLS = ("skin", "c", "dmax", "dg_max", "dg_min", "factor", "collision_gap")
+
     def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
                  dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12,
                  factor: str = "cholmod", collision_gap: float = 1e-4,

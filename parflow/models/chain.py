@@ -16,9 +16,13 @@ import numpy as np
 
 from ..geometry import velocity_gradient
 from ..observables import stress
-from ..state import Bonds, InputError, State
+from ..state import Bonds, InputError, Instant, State
 
+NAME = "chain"
+ENGINE = "bonded"
 FLOW = "extension"
+FACTOR_REUSE = False
+omega_min = None            # the bonded engine's, on its force factor
 PARAMS = {
     # name: (type, default, check, description)
     "N": (int, 10000, lambda v: v >= 3, "number of rods (>= 3)"),
@@ -103,9 +107,10 @@ def response_length(profile: np.ndarray, floor: float = 1e-10) -> float:
     return float(-1.0 / slope) if slope < 0 else float("nan")
 
 
-def analyses(system, state: State, F, rods: int = 8) -> dict:
+def analyses(at: Instant, rods: int = 8) -> dict:
     """C(n), the point response of one elongated rod (averaged over ``rods`` rods), and the
     lengths fitted from them.  Uses the factor of N loaded at this configuration."""
+    system, state, F = at.system, at.state, at.F
     N = state.n
     C = velocity_correlation(F.V_na)
     half = N // 2 + 1

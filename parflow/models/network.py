@@ -34,15 +34,19 @@ from ..geometry import pair_vectors, velocity_gradient
 from ..observables.correlation import (CORR_EXACT_MAX, CORR_GRID_MAX, CORR_METHODS,  # noqa: F401
                                       correlation, crossing_length)
 from ..observables.response import fit_two_exponentials, pick_rods, point_response
-from ..state import Bonds, InputError, State
+from ..spectrum import omega_from_lambda, on_force_factor
+from ..state import Bonds, InputError, Instant, State
 from . import network_build as _nb
 
+NAME = "network"
+ENGINE = "bonded"
 FLOW = "shear"
 Z_RANGE = (3.5, 3.98)
 DENSE_MAX = 10_000
 # the force solve at the end of a step may reuse the step's factor (solver.reuse_factor =
 # "auto" above dynamics.bonded.REUSE_AUTO_MIN_NC rods): a 2D network's factor costs ~20-30 solves
 FACTOR_REUSE = True
+omega_min = None            # the bonded engine's, on its force factor
 SPECTRA = ("none", "dense", "low", "auto")
 
 PARAMS = {
@@ -77,7 +81,8 @@ PARAMS = {
     "n_low": (int, 10, lambda v: v >= 1, "number of lowest eigenvalues for spectrum = 'low' (>= 1)"),
     "dos_bins": (int, 60, lambda v: v >= 2, "number of log-spaced bins of D(omega) (>= 2)"),
 }
-# the analysis settings travel with the state (State.meta), so a restart keeps them
+# the analysis settings are recorded in State.meta (the run file's /model attributes); the
+# analyses read them from the scene (Instant.scene), like every model parameter
 _ANALYSIS_KEYS = ("response_rods", "response_dr", "corr_dr", "corr_rmax", "correlation",
                   "corr_method", "corr_spacing", "spectrum", "n_low", "dos_bins")
 
@@ -225,11 +230,12 @@ def _bcast(system, value):
     return comm.tompi4py().bcast(value, root=0)
 
 
-def analyses(system, state: State, F) -> dict:
+def analyses(at: Instant) -> dict:
     """Point response, C(r) and the spectrum of N at the current configuration.
 
-    ``state`` must carry the current positions (state.s at F.gamma): checked against F.r."""
-    meta = {k: state.meta.get(k, PARAMS[k][1]) for k in _ANALYSIS_KEYS}
+    ``at.state`` must carry the current positions (state.s at F.gamma): checked against F.r."""
+    system, state, F = at.system, at.state, at.F
+    meta = at.scene["model"]
     bd, s, h = state.bonds, state.s, F.h
     mism = float(np.max(np.abs(pair_vectors(s, h, bd.i, bd.j, bd.shift) - F.r)))
     if not mism <= 1e-8 * max(1.0, float(np.abs(h).max())):
@@ -280,8 +286,7 @@ def analyses(system, state: State, F) -> dict:
         arrays.update(omega=omega, dos_edges=edges, dos=D)
         scalars["omega_min_dense"] = float(omega[0])
     elif mode == "low":
-        from ..spectrum import LowSpectrum, omega_from_lambda
-        spec = LowSpectrum(system.ops.N, k=int(meta["n_low"]), parallel=system.parallel)
+        spec = on_force_factor(system, int(meta["n_low"]))    # no second factorisation
         try:
             lam, _ = spec.solve()
         finally:

@@ -28,23 +28,26 @@ import os
 
 import numpy as np
 
-from ..dynamics.hard_discs import min_gap
+from ..dynamics.hard_discs import Suspension, min_gap
 from ..dynamics.lcp import FACTORS
 from ..geometry import cell_at, find_candidates, velocity_gradient
 from ..observables import correlation as corr
 from ..observables import response as resp
-from ..observables.contacts import force_bearing, force_distribution
+from ..observables import stress
+from ..observables.contacts import coordination, force_bearing, force_distribution
 from ..packing.fire import fire_minimize
 from ..packing.mixture import PHI_J_2D as PHI_J
 from ..packing.mixture import RADIUS_RATIO, binary_radii, check_mixture, check_phi
 from ..packing.pairs import pair_list, wrap01
 from ..solvers import SolveError
 from ..spectrum import omega_min_on
-from ..state import InputError, State
+from ..state import InputError, Instant, State
 from . import frozen as fz
 
+NAME = "suspension"
 ENGINE = "contacts"
 FLOW = "shear"
+FACTOR_REUSE = False
 
 PARAMS = {
     # name: (type, default, check, description)
@@ -77,7 +80,6 @@ PARAMS = {
                            "stress growth of the frozen network that counts as jammed (> 1)"),
     "delta_gamma_max": (float, 1.0, lambda v: v > 0, "largest backward strain tried (> 0)"),
 }
-_CONTROL_KEYS = ("skin", "c", "dmax", "dg_max", "dg_min", "factor", "collision_gap")
 _ANALYSIS_KEYS = ("force_bins", "correlation", "corr_dr", "corr_rmax", "response_rods",
                   "response_dr", "delta_gamma", "delta_gamma_factor", "delta_gamma_max")
 
@@ -101,7 +103,7 @@ def build(params: dict, seed: int) -> State:
     state.meta.update(model="suspension", phi_target=float(p["phi"]), ratio=float(p["ratio"]),
                       small_fraction=float(p["small_fraction"]))
     state.meta.update({k: (int(v) if isinstance(v, bool) else v) for k, v in p.items()
-                       if k in _CONTROL_KEYS + _ANALYSIS_KEYS})
+                       if k in Suspension.CONTROLS + _ANALYSIS_KEYS})
     return state
 
 
@@ -218,42 +220,28 @@ def load_configuration(path: str, p: dict) -> State:
     return state
 
 
-def _meta(meta: dict, keys) -> dict:
-    out = {}
-    for k in keys:
-        v = meta.get(k, PARAMS[k][1])
-        typ = PARAMS[k][0]
-        out[k] = bool(v) if typ is bool else (str(v) if typ is str else typ(v))
-    return out
+def observables(state: State, F) -> dict:
+    """Per step: sigma_fb = -dir <f|b>/Omega, p = sum f |r| / (d Omega), mu = sigma / p, and
+    the coordination z (force-bearing contacts, rattlers removed; z_all, z2 beside it)."""
+    fb_sigma = stress.sigma_tb(F.f, F.c.b, F.omega, F.direction)
+    p = stress.pressure(F.f, F.c.dist, F.omega, state.d)
+    z = coordination(F.c, F.f, state.n, state.d)
+    return dict(sigma_fb=fb_sigma, pressure=p, mu=F.sigma / p if p > 0 else float("nan"), **z)
 
 
-def controls(meta: dict) -> dict:
-    """Keyword arguments of ``dynamics.hard_discs.Suspension`` from the state's meta."""
-    return _meta(meta, _CONTROL_KEYS)
-
-
-def restore_dict(state: State, ck: dict) -> dict:
-    """The ``Suspension.restore`` dict from the run file's initial state and checkpoint."""
-    return dict(s=ck["s"], h0=state.h0, gamma=ck["gamma"], radii=state.radii,
-                sigma=ck["sigma"], vmax=ck["vmax"], last_dg=ck.get("dgamma", 0.0),
-                active_keys=ck["active_keys"],
-                steps=ck["steps"], collisions=ck["collisions"], max_overlap=ck["max_overlap"],
-                singular_events=ck["singular_events"],
-                infeasible_reductions=ck["infeasible_reductions"], controls=controls(state.meta))
-
-
-def frozen_omega_min(comm, state: State, F, scene: dict) -> float:
+def omega_min(at: Instant) -> float:
     """omega_min of the suspension at this instant: that of its frozen contact network
     (NaN if it carries a state of self-stress)."""
-    return fz.frozen_omega_min(comm, state, F, scene)
+    return fz.frozen_omega_min(at.comm, at.state, at.F, at.scene)
 
 
 # --------------------------------------------------------------------------- analyses
 
-def analyses(comm, state: State, F, scene: dict, direction: int = 1) -> dict:
+def analyses(at: Instant) -> dict:
     """P(f), C(r) and, on the frozen contact network, sigma, omega_min, the point response
-    and delta_gamma, at the configuration of ``F`` (a probe of the current state)."""
-    meta = _meta(state.meta, _ANALYSIS_KEYS)
+    and delta_gamma, at the configuration of ``at.F`` (a probe of the current state)."""
+    comm, state, F, scene, direction = at.comm, at.state, at.F, at.scene, at.direction
+    meta = scene["model"]
     s, h = np.asarray(state.s, float), F.h
     arrays, scalars = {}, {}
     pf = force_distribution(F.f, meta["force_bins"])

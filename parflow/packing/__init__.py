@@ -1,7 +1,7 @@
 """Jammed soft-sphere packings and the binary mixture they are made of (no PETSc, no MPI).
 
 Used by the network build (``models.network_build``), the suspension's initial states
-(``parflow.suspension``) and ``prepare compress``.
+(``models.suspension``) and ``prepare compress``.
 
 * ``mixture``: the one source of the mixture's constants (SMALL_DIAMETER, RADIUS_RATIO,
   PHI_J by dimension), ``binary_radii``, volumes, box sides and input checks;

@@ -7,7 +7,7 @@ protocol); the 2D value 0.843 is also the shear-jamming packing fraction the sus
 bounded by (PHI_J_2D).
 
 Used by the soft-sphere packings (``parflow.packing.fire``), the hard-disc suspension
-(``parflow.suspension``, ``parflow.models.suspension``) and ``prepare``.  numpy only.
+(``models.suspension``, ``dynamics.hard_discs``) and ``prepare``.  numpy only.
 """
 from __future__ import annotations
 

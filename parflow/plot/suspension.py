@@ -8,7 +8,7 @@ Single run:
 * ``fig6a_sigma``        sigma(gamma) over the statistics window, steps with collisions marked
                          (at N = 4096 nearly all of them); p and mu.
 * ``fig6b_relaxation``   -dsigma/dgamma against sigma over pairs of collision-free steps
-                         (``suspension.relaxation``), slope-2 reference and fit.
+                         (``post.suspension.relaxation``), slope-2 reference and fit.
 * ``fig6c_delta_gamma``  distance to jamming delta_gamma (frozen contacts sheared backwards)
                          against sigma, slope -1 reference and fit.
 * ``fig6d_omega_min``    omega_min of the frozen contact network against sigma, slope -1/2.
@@ -39,17 +39,7 @@ from ..post.suspension import (PRED, across_suspension, pooled_points, suspensio
 from .base import Run, Skip, figure, new_figure, reference, register_model
 
 
-def _fits(run: Run) -> dict:
-    """suspension_fits with the collision-free relaxation fit of ``parflow.suspension``.
-
-    Imported here, when a suspension run is plotted: ``relaxation`` still lives beside the
-    hard-disc stepper in parflow.suspension, which parflow.post must not import; this is the
-    one import of it from parflow.plot, to go when the function moves to parflow.post."""
-    from ..suspension import relaxation
-    return suspension_fits(run, relaxation)
-
-
-register_model("suspension", fits=_fits, across=suspension_across)
+register_model("suspension", fits=suspension_fits, across=suspension_across)
 
 
 def _title(run: Run, what: str) -> str:

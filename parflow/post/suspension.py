@@ -64,14 +64,38 @@ def _strain_weighted(x, w):
     return float(np.sum(x[ok] * w[ok]) / np.sum(w[ok])) if ok.any() else math.nan
 
 
-def suspension_fits(run, relaxation=None) -> dict:
+def relaxation(gamma: np.ndarray, dgamma: np.ndarray, sigma: np.ndarray,
+               n_coll: np.ndarray) -> dict:
+    """dsigma/dgamma between collisions, against sigma (paper: dsigma/dgamma = -sigma^2/C).
+
+    Inputs are per-step series (StepStats.gamma is the strain at the *end* of a step; sigma
+    was evaluated at its start, gamma - dgamma).  Uses pairs of consecutive steps that are
+    both collision-free; the difference quotient is set against the geometric mean of the
+    two sigmas, which makes it exact for sigma = 1/(1/sigma_0 + gamma/C).  Returns the number
+    of such pairs, the fraction with decreasing sigma, the slope of log(-dsigma/dgamma)
+    against log sigma over the decreasing ones (2 expected) and C = median sigma^2/(-dsigma/dgamma).
+    """
+    g0 = np.asarray(gamma, float) - np.asarray(dgamma, float)
+    s = np.asarray(sigma, float)
+    nc = np.asarray(n_coll)
+    ok = (nc[:-1] == 0) & (nc[1:] == 0)
+    dsdg = np.diff(s) / np.diff(g0)
+    smid = np.sqrt(s[:-1] * s[1:])
+    dec = ok & (dsdg < 0)
+    out = dict(pairs=int(ok.sum()), decreasing=float(dec.sum() / ok.sum()) if ok.any() else math.nan,
+               slope=math.nan, C=math.nan)
+    if dec.sum() >= 3:
+        out["slope"] = float(np.polyfit(np.log(smid[dec]), np.log(-dsdg[dec]), 1)[0])
+        out["C"] = float(np.median(smid[dec] ** 2 / -dsdg[dec]))
+    return out
+
+
+def suspension_fits(run, relaxation=relaxation) -> dict:
     """Averages over the statistics window and the power laws of Figs. 6-7 for one run.
 
     ``relaxation(gamma, dgamma, sigma, n_coll) -> dict``: the fit of dsigma/dgamma over
-    pairs of collision-free steps (``parflow.suspension.relaxation``), applied to the rows
-    of the window and stored as ``"relaxation"``; left out when None.  It is passed in, not
-    imported, because it still lives in ``parflow.suspension`` (with the stepper), which
-    post must not import."""
+    pairs of collision-free steps (:func:`relaxation` unless another is given), applied to
+    the rows of the window and stored as ``"relaxation"``; left out when None."""
     ts = run.ts
     if "sigma" not in ts or "strain" not in ts:
         return dict(model="suspension")

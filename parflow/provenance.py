@@ -1,0 +1,41 @@
+"""Provenance of a run file: the git commit of the code and the versions of what it ran on."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from . import __version__
+
+
+def git_commit() -> str:
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        out = subprocess.run(["git", "-C", here, "rev-parse", "HEAD"], capture_output=True,
+                             text=True, timeout=5)
+        dirty = subprocess.run(["git", "-C", here, "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "") if out.returncode == 0 else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def versions() -> str:
+    """parflow, python, numpy, scipy, h5py, PETSc, MPI (and slepc4py) versions, one line.
+    (Imported here, when a run starts: h5py, scipy and mpi4py are not needed before.)"""
+    import h5py
+    import scipy
+    from mpi4py import MPI
+
+    from .operators import petsc_version
+    v = dict(parflow=__version__, python=sys.version.split()[0], numpy=np.__version__,
+             scipy=scipy.__version__, h5py=h5py.__version__,
+             petsc=petsc_version(), mpi=MPI.Get_library_version().split("\n")[0])
+    try:   # the package version only: importing slepc4py.SLEPc would initialise SLEPc
+        import slepc4py   # on this rank alone and make the ranks' finalisation diverge
+        v["slepc4py"] = slepc4py.__version__
+    except ImportError:
+        pass
+    return "; ".join(f"{k}={x}" for k, x in v.items())
