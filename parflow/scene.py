@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import re
 import tomllib
 
 from .dynamics.heun import CONTROLLERS, StepControl
@@ -210,7 +211,16 @@ def _petsc(table: dict) -> dict:
                              f"{key}_<option> = value")
         if not isinstance(value, (str, int, float, bool)):
             raise InputError(f"petsc.{key} must be a string, number or boolean")
-        out[key.lstrip("-")] = value
+        name = key.lstrip("-")
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name):
+            raise InputError(f"petsc.{key!r}: a PETSc option name is letters, digits and '_', "
+                             f"without spaces (e.g. tau_pc_factor_mat_solver_type)")
+        if isinstance(value, str) and (re.search(r"\s|\x00", value) or value.startswith("-")):
+            raise InputError(f"petsc.{name} = {value!r}: an option value is one word "
+                             f"(no spaces, not starting with '-'); give each option its own key")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"petsc.{name} = {value!r} must be finite")
+        out[name] = value
     return out
 
 

@@ -156,6 +156,22 @@ def test_petsc_option_values_rejected(tmp_path, option, named, petsc_says, where
     assert not out.exists() and not (tmp_path / "o.h5.tmp").exists()
 
 
+@pytest.mark.parametrize("entry, message", [
+    ('"" = 1', "a PETSc option name is letters"),
+    ('"tau ksp_type" = "cg"', "a PETSc option name is letters"),
+    ('tau_pc_type = "lu cholesky"', "an option value is one word"),
+    ('tau_pc_type = "-lu"', "an option value is one word"),
+    ("tau_ksp_rtol = nan", "must be finite"),
+    ("tau = { pc_type = 'lu' }", "PETSc options are flat"),
+])
+def test_petsc_table_entries_petsc_would_misread(entry, message):
+    """Keys and values that PETSc's option parser would split or drop silently."""
+    from parflow.scene import load_scene
+    from parflow.state import InputError
+    with pytest.raises(InputError, match=message):
+        load_scene(GOOD + f"\n[petsc]\n{entry}\n")
+
+
 def test_good_petsc_options_still_run_and_unused_ones_still_warn(tmp_path):
     out = tmp_path / "o.h5"
     res = shear(write(tmp_path / "s.toml", GOOD), "--output", out, "--no-plots",

@@ -109,7 +109,8 @@ def check_memory(name: str, params: dict, n_ranks: int = 1, ranks_here: int | No
         if memory_needed(name, fit + 2 ** k, n_ranks, ranks_here, parallel) <= have:
             fit += 2 ** k
     ranks = f" on each of {here} ranks" if here > 1 else ""
-    hint = (f"choose model.N <= {fit:,} on {n_ranks} rank(s) here" if fit >= 1
+    hint = (f"choose model.N <= {fit:,} (for {n_ranks} rank{'s' if n_ranks > 1 else ''}, "
+            f"{here} on this machine)" if fit >= 1
             else "this machine cannot hold even the program on that many ranks")
     shown = f"{n:,}" if n < 10 ** 15 else f"{n:.4g}"
     raise InputError(f"model.N = {shown}: a {name} of that size would need about {_bytes(need)} of "
