@@ -14,23 +14,16 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import cell_at, pair_vectors
-from .io import load_group, read_run
+from .io import RunFile
 from .models import MODELS, get_model
 
 
 def read_checkpoint(path: str, n_legs: int, model: str):
     """(initial state arrays, checkpoint attrs and arrays, /model attrs) of a run file, after
     :func:`check_checkpoint`: on rank 0, before anything touches the file."""
-    f = read_run(path)
-    try:
-        check_checkpoint(f, path, n_legs, model)
-        init = load_group(f["initial"])
-        ck = dict(f["checkpoint"].attrs)
-        ck.update(load_group(f["checkpoint"]))
-        meta = dict(f["model"].attrs) if "model" in f else {}
-    finally:
-        f.close()
-    return init, ck, meta
+    with RunFile(path) as run:
+        check_checkpoint(run.h5, path, n_legs, model)
+        return run.initial(), run.checkpoint(), dict(run.h5["model"].attrs) if "model" in run.h5 else {}
 
 
 # What a restart reads from /checkpoint (attrs; arrays in _CK_ARRAYS), per engine: the

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.linalg import expm
 from scipy.spatial import cKDTree
 
@@ -78,6 +79,19 @@ def pair_geometry(s, h, E, i, j, shift):
     n = r / ell[:, None]
     b = np.einsum("ad,ad->a", n, r @ E.T)
     return r, ell, n, b
+
+
+def rigidity_csr(n_unit: np.ndarray, i: np.ndarray, j: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """The rigidity matrix S (Nc x d N) as a scipy CSR matrix -- the one serial S of the code
+    (``operators.RigidityOperators`` is its distributed PETSc twin): row alpha has -n_alpha
+    at node i and +n_alpha at node j, so (S V)_alpha = n_alpha . (V_j - V_i) is the rate of
+    change of the pair's length and (S^T tau)_k the net pair force on node k (DESIGN §2)."""
+    nc, d = n_unit.shape
+    rows = np.repeat(np.arange(nc), 2 * d)
+    comp = np.arange(d)
+    cols = np.concatenate([d * i[:, None] + comp, d * j[:, None] + comp], axis=1).ravel()
+    vals = np.concatenate([-n_unit, n_unit], axis=1).ravel()
+    return sp.csr_matrix((vals, (rows, cols)), shape=(nc, d * n_nodes))
 
 
 # =========================================================================== remap, minimum image

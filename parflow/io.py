@@ -564,3 +564,154 @@ def load_group(g) -> dict:
     for k, v in g.items():
         out[k] = load_group(v) if isinstance(v, h5py.Group) else v[()]
     return out
+
+
+# =========================================================================== the one reader
+
+def _text(v):
+    return v.decode(errors="replace") if isinstance(v, bytes) else v
+
+
+def _scalar(v):
+    v = _text(v)
+    return v.item() if isinstance(v, np.generic) else v
+
+
+class RunFile:
+    """The one reader of a run file (layout above), opened read-only with the checks of
+    :func:`read_run` (InputError: missing, not HDF5, damaged, not a parflow run file).
+
+    ``with RunFile(path) as run:`` then ``run.attrs``, ``run.model``, ``run.scene_text``,
+    ``run.settings``, ``run.model_attrs``, ``run.timeseries()``, ``run.analyses()``,
+    ``run.snapshot_steps()``, ``run.snapshot(step)``, ``run.initial()``,
+    ``run.initial_state()``, ``run.has_checkpoint``, ``run.checkpoint()``; ``run.h5`` is the
+    open h5py file for what has no method yet."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.h5 = read_run(path)
+
+    def close(self) -> None:
+        self.h5.close()
+
+    def __enter__(self) -> "RunFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- attributes ----------------------------------------------------------------------
+    @property
+    def attrs(self) -> dict:
+        return {k: _scalar(v) for k, v in self.h5.attrs.items()}
+
+    @property
+    def model(self) -> str:
+        return str(_text(self.h5.attrs.get("model", "")))
+
+    @property
+    def scene_text(self) -> str:
+        return str(_text(self.h5.attrs.get("scene", "")))
+
+    @property
+    def settings(self) -> list[str]:
+        """The ``--set`` settings the run was given (and later restarts re-apply)."""
+        return [s for s in str(_text(self.h5.attrs.get("scene_settings", ""))).split("\n") if s]
+
+    @property
+    def model_attrs(self) -> dict:
+        g = self.h5.get("model")
+        return {k: _scalar(v) for k, v in g.attrs.items()} if isinstance(g, h5py.Group) else {}
+
+    # -- data ----------------------------------------------------------------------------
+    def timeseries(self) -> dict:
+        """Every 1-D time-series column, cut to their common length."""
+        ts = {}
+        g = self.h5.get("timeseries")
+        if isinstance(g, h5py.Group):
+            ts = {k: d[()] for k, d in g.items() if isinstance(d, h5py.Dataset) and d.ndim == 1}
+        n = min((len(v) for v in ts.values()), default=0)
+        return {k: v[:n] for k, v in ts.items()}
+
+    def analyses(self) -> list[dict]:
+        """The analysis instants in step order: their attributes and arrays in one dict."""
+        out = []
+        g = self.h5.get("analysis")
+        for key in sorted(g) if isinstance(g, h5py.Group) else ():
+            a_g = g[key]
+            if not isinstance(a_g, h5py.Group):
+                continue
+            a = {k: _scalar(v) for k, v in a_g.attrs.items()}
+            a.setdefault("step", int(key) if key.isdigit() else -1)
+            a.update({k: d[()] for k, d in a_g.items() if isinstance(d, h5py.Dataset)})
+            out.append(a)
+        return out
+
+    def snapshot_steps(self) -> list[int]:
+        g = self.h5.get("snapshots")
+        return sorted(int(k) for k in g if k.isdigit()) if isinstance(g, h5py.Group) else []
+
+    def snapshot(self, step: int) -> dict:
+        """The snapshot at ``step``: its arrays and attributes (KeyError if there is none)."""
+        g = self.h5[f"snapshots/{step:08d}"]
+        out = {k: _scalar(v) for k, v in g.attrs.items()}
+        out.update(load_group(g))
+        return out
+
+    def initial(self) -> dict:
+        return load_group(self.h5["initial"])
+
+    def initial_state(self, gamma: float = 0.0, s=None):
+        """The run's State (/initial: cell, bonds, radii), with positions ``s`` (default: the
+        initial ones) at strain ``gamma``, and /model attributes as its meta."""
+        from .state import State
+        g = self.initial()
+        if s is not None:
+            g["s"] = s
+        return State.from_groups(g, gamma, self.model_attrs)
+
+    @property
+    def has_checkpoint(self) -> bool:
+        return isinstance(self.h5.get("checkpoint"), h5py.Group)
+
+    def checkpoint(self) -> dict:
+        """The checkpoint's attributes and arrays in one dict."""
+        g = self.h5["checkpoint"]
+        ck = dict(g.attrs)
+        ck.update(load_group(g))
+        return ck
+
+
+# =========================================================================== the one atomic writer
+
+class atomic_h5:
+    """``with atomic_h5(path) as f:`` -- an HDF5 file written whole or not at all: written as
+    ``path.tmp`` (a copy of ``source`` first, if given, then opened for appending), fsynced and
+    renamed over ``path`` on success; removed on any error.  (A run file's repeated flushes
+    use :class:`RunWriter` instead, whose cost does not grow with the file.)"""
+
+    def __init__(self, path: str, source: str | None = None):
+        self.path, self.source, self.tmp = path, source, path + ".tmp"
+        self.f = None
+
+    def __enter__(self) -> h5py.File:
+        try:
+            if self.source is not None:
+                shutil.copyfile(self.source, self.tmp)
+                self.f = h5py.File(self.tmp, "a")
+            else:
+                self.f = h5py.File(self.tmp, "w")
+        except BaseException:
+            _remove(self.tmp)
+            raise
+        return self.f
+
+    def __exit__(self, typ, exc, tb) -> None:
+        try:
+            self.f.close()
+            if typ is None:
+                _fsync(self.tmp)
+                os.replace(self.tmp, self.path)
+                _fsync_dir(self.path)
+        finally:
+            _remove(self.tmp)

@@ -24,6 +24,8 @@ import sys
 
 import numpy as np
 
+from .geometry import cell_at, pair_geometry, rigidity_csr
+from .io import RunFile, atomic_h5, check_output_path, read_run
 from .state import InputError
 
 MAX_RODS = 300_000          # scipy's serial shift-and-invert: beyond, parflow.spectrum
@@ -42,8 +44,7 @@ def mode_table(n_unit: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray, 
     i and j, with the stress share of each for affine rates ``b`` (see the module)."""
     import scipy.sparse.linalg as sla
 
-    from .models.network import sparse_S
-    S = sparse_S(n_unit, i, j, n_nodes)
+    S = rigidity_csr(n_unit, i, j, n_nodes)
     N = (S @ S.T).tocsc()
     nc, d = n_unit.shape
     k = min(k, nc - 1)
@@ -62,17 +63,16 @@ def mode_table(n_unit: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray, 
 
 def analyse_run(path: str, k: int = 3, progress=None) -> dict:
     """Mode table of every snapshot of the bonded run file ``path`` (arrays, one row each)."""
-    from .cell import cell_at, pair_geometry
-    from .io import load_group, read_run
-    with read_run(path) as f:
+    with RunFile(path) as run:
+        f = run.h5
         if "initial" not in f or "bonds" not in f["initial"]:
             raise InputError(f"{path!r} is not a run of a bonded model (chain, network): "
                              f"no initial/bonds")
-        snaps = sorted(f["snapshots"]) if "snapshots" in f else []
+        snaps = run.snapshot_steps()
         if not snaps:
             raise InputError(f"{path!r} has no snapshots: run the scene with "
                              f"[observables] snapshot_every = n (a snapshot every n steps)")
-        init = load_group(f["initial"])
+        init = run.initial()
         bd = init["bonds"]
         nc = len(bd["i"])
         if k > nc - 1:
@@ -81,15 +81,15 @@ def analyse_run(path: str, k: int = 3, progress=None) -> dict:
         if nc > MAX_RODS:
             raise InputError(f"{len(bd['i'])} rods: too many for the serial mode analysis "
                              f"(<= {MAX_RODS}); use python -m parflow.spectrum on single states")
-        ts = f["timeseries"]
-        steps, sig, dirn = ts["step"][:], ts["sigma"][:], ts["direction"][:]
+        ts = run.timeseries()
+        steps, sig, dirn = ts["step"], ts["sigma"], ts["direction"]
         h0, E = init["h0"], init["E"]
         rows = {q: [] for q in ("step", "gamma", "direction", "sigma", "lam", "share", "pr_stress",
                                 "pr_motion", "pr_V")}
         for c, key in enumerate(snaps):
-            g = f["snapshots"][key]
-            step, gamma = int(g.attrs["step"]), float(g.attrs["gamma"])
-            s = g["s"][()]
+            g = run.snapshot(key)
+            step, gamma = int(g["step"]), float(g["gamma"])
+            s = g["s"]
             _, _, n, b = pair_geometry(s, cell_at(h0, E, gamma), E, bd["i"], bd["j"], bd["shift"])
             t = mode_table(n, b, bd["i"], bd["j"], s.shape[0], k)
             row = int(np.searchsorted(steps, step))
@@ -99,20 +99,18 @@ def analyse_run(path: str, k: int = 3, progress=None) -> dict:
             rows["sigma"].append(float(sig[row]))
             for q in ("lam", "share", "pr_stress", "pr_motion"):
                 rows[q].append(t[q])
-            rows["pr_V"].append(participation(g["V_na"][()]) if "V_na" in g else float("nan"))
+            rows["pr_V"].append(participation(g["V_na"]) if "V_na" in g else float("nan"))
             if progress:
                 progress(c + 1, len(snaps), step)
     return {q: np.array(v) for q, v in rows.items()}
 
 
 def write(out: str, res: dict, attrs: dict) -> None:
-    import h5py
-    tmp = out + ".part"
-    with h5py.File(tmp, "w") as f:
+    """The mode table, written whole or not at all (``io.atomic_h5``)."""
+    with atomic_h5(out) as f:
         for q, v in res.items():
             f.create_dataset(q, data=v)
         f.attrs.update(attrs)
-    os.replace(tmp, out)
 
 
 def plot(res: dict, png: str, title: str = "") -> None:
@@ -170,7 +168,6 @@ def main(argv=None) -> int:
         out = a.output or os.path.splitext(a.run)[0] + ".modes.h5"
         if os.path.exists(a.run) and _same_file(a.run, out):
             raise InputError(f"--output {out!r} is the run file itself: choose another file")
-        from .io import check_output_path, read_run
         read_run(a.run).close()             # the input first: no folder made for a missing run
         check_output_path(out, a.overwrite)
 

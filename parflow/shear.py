@@ -3,6 +3,10 @@
 Without a scene file the embedded default scene runs (a chain in planar extension, forward
 to <V^2> = 1e8 and back).  Any ``-option value`` with a single dash goes to PETSc and
 overrides the scene's [petsc] table (e.g. ``-tau_pc_factor_mat_solver_type mumps``).
+
+The imports of parflow's modules are inside the functions on purpose: PETSc must be
+initialised with the command line's options (``cli.init_petsc``) before any module that
+imports petsc4py is loaded, and ``--help``/``--print-scene`` need none of them.
 """
 from __future__ import annotations
 
@@ -77,28 +81,19 @@ def _branch(src: str, dst: str, overwrite: bool) -> int:
     """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint).
     ``src`` was checked by ``_restart_scene``; it is only read.  ``dst`` appears complete
     or not at all."""
-    import shutil
-
-    from .io import check_output_path
+    from .io import atomic_h5, check_output_path
     from .state import InputError
     if os.path.abspath(src) == os.path.abspath(dst):
         raise InputError("--output names the file being restarted: to continue the run itself, "
                          "drop --output; to branch it, give a new file")
     check_output_path(dst, overwrite)
-    tmp = dst + ".tmp"
     try:
-        shutil.copyfile(src, tmp)
-        import h5py
-        with h5py.File(tmp, "a") as f:
+        with atomic_h5(dst, source=src) as f:
             step = int(f["checkpoint"].attrs["step"])
             f.attrs["branched_from"] = f"{os.path.abspath(src)} at step {step}"
-        os.replace(tmp, dst)
     except OSError as exc:
         raise InputError(f"cannot write the branch {dst!r}: {exc.strerror or exc}; "
                          f"{src!r} was not changed") from None
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return step
 
 
@@ -106,24 +101,20 @@ def _restart_scene(path):
     """The scene text and stored settings of the run file ``path``, after checking that its
     checkpoint can be restarted from (``checkpoint.check_checkpoint``): a hostile or damaged file
     is refused here, before the restart (or a branch) touches anything."""
-    from .io import read_run
     from .checkpoint import check_checkpoint
+    from .io import RunFile
     from .scene import load_scene
     from .state import InputError
-    f = read_run(path)
-    try:
-        if "checkpoint" not in f:
+    with RunFile(path) as run:
+        if not run.has_checkpoint:
             raise InputError(f"{path!r} has no checkpoint: it cannot be restarted; the file was not changed")
-        text = f.attrs.get("scene")
-        if not isinstance(text, str) or not text:
+        text = run.scene_text
+        if not text:
             raise InputError(f"{path!r} has no scene attribute: it cannot be restarted; "
                              f"the file was not changed")
         scene = load_scene(text, path)
-        check_checkpoint(f, path, len(scene["protocol"]["leg"]), scene["model"]["name"])
-        settings = str(f.attrs.get("scene_settings", ""))
-        return text, [s for s in settings.split("\n") if s]
-    finally:
-        f.close()
+        check_checkpoint(run.h5, path, len(scene["protocol"]["leg"]), scene["model"]["name"])
+        return text, run.settings
 
 
 def _run(args, petsc_args, PETSc) -> int:

@@ -5,6 +5,7 @@ import pytest
 from scipy.optimize import nnls
 
 from parflow import geometry
+from parflow.geometry import rigidity_csr
 from parflow.post import suspension as su
 from parflow.dynamics import hard_discs as hd
 from parflow.dynamics import lcp as co
@@ -82,7 +83,7 @@ def test_lcp_matches_nnls():
     st = msu.make_suspension(48, 0.6, seed=5)
     rng = np.random.default_rng(0)
     c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.4)
-    S = co.rigidity(c, st.n)
+    S = rigidity_csr(c.n, c.i, c.j, st.n)
     assert np.linalg.matrix_rank(S.toarray()) == len(c)    # q is in range(S)
     for dg in (1e-1, 1e-2, 1e-3):
         q = c.b + c.gap / dg
@@ -98,7 +99,7 @@ def test_lcp_matches_nnls():
 
 def test_lcp_dense_complementarity(dense):
     c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
-    S = co.rigidity(c, dense.n)
+    S = rigidity_csr(c.n, c.i, c.j, dense.n)
     assert len(c) > 2 * dense.n                        # N_C is singular
     q = c.b + c.gap / 1e-3
     f, info = co.solve_lcp(S, q)
@@ -110,7 +111,7 @@ def test_singular_active_set_is_handled():
     """Duplicated contacts: N_AA is exactly singular (a self-stress); no crash, a valid f."""
     st = msu.make_suspension(32, 0.7, seed=2)
     c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.05)
-    S1 = co.rigidity(c, st.n).toarray()
+    S1 = rigidity_csr(c.n, c.i, c.j, st.n).toarray()
     S = np.vstack([S1, S1[:3]])
     import scipy.sparse as sp
     S = sp.csr_matrix(S)
@@ -179,7 +180,7 @@ def test_ranks_agree(comm, dense):
 
 def test_factor_backends_agree(dense):
     c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
-    S = co.rigidity(c, dense.n)
+    S = rigidity_csr(c.n, c.i, c.j, dense.n)
     q = c.b + c.gap / 1e-3
     f1, i1 = co.solve_lcp(S, q, factor="cholmod")
     f2, i2 = co.solve_lcp(S, q, factor="superlu")
@@ -233,7 +234,7 @@ def test_bordered_solves_match_fresh_factorisations(dense):
     factorisation with bordered (Schur complement) updates equal dense solves; a border
     larger than max_border, or one that makes N_AA singular, gets a fresh factorisation."""
     c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
-    S = co.rigidity(c, dense.n)
+    S = rigidity_csr(c.n, c.i, c.j, dense.n)
     N = (S @ S.T).tocsr()
     Nd = N.toarray()
     q = c.b + c.gap / 1e-3
@@ -262,7 +263,7 @@ def test_bordered_singular_border_falls_back(dense):
     (singular Schur complement), the fresh factorisation is shifted and counted."""
     import scipy.sparse as sp
     c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
-    S1 = co.rigidity(c, dense.n)
+    S1 = rigidity_csr(c.n, c.i, c.j, dense.n)
     S = sp.vstack([S1, S1[:1]]).tocsr()
     N = (S @ S.T).tocsr()
     q = np.concatenate([c.b, c.b[:1]]) + 1.0

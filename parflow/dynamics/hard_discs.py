@@ -33,10 +33,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import Candidates, cell_at, find_candidates, velocity_gradient
+from ..geometry import Candidates, cell_at, find_candidates, rigidity_csr, velocity_gradient
 from ..observables import stress
 from ..state import State
-from .lcp import FACTORS, LCPFailure, LCPInfo, rigidity, solve_lcp
+from .lcp import FACTORS, LCPFailure, LCPInfo, solve_lcp
 
 DEFAULT_SKIN = 0.3
 FIRST_DGAMMA = 1e-4
@@ -136,7 +136,7 @@ class Suspension:
     def forces(self, c: Candidates, dg: float, direction: int = 1):
         """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
         -1 reversed flow: the affine rates change sign, b -> -b)."""
-        S = rigidity(c, self.state.n)
+        S = rigidity_csr(c.n, c.i, c.j, self.state.n)
         q = direction * c.b + c.gap / dg
         warm = np.isin(self._keys(c), self._active_keys)
         f, info = solve_lcp(S, q, warm, factor=self.factor)

@@ -1,7 +1,6 @@
 """Contact forces of hard particles (DESIGN §5); the candidate pairs come from
 ``parflow.geometry.find_candidates``.
 
-* ``rigidity``: S_C (Nc x dN), -n at i, +n at j.
 * ``solve_lcp``: f >= 0, w = S S^T f + q >= 0, f . w = 0 (q = b + h/dg for the suspension
   step) by block principal pivoting from a warm set, with a Lawson-Hanson primal active
   set as the fall-back; each inner solve factors the active N_AA (CHOLMOD through PETSc on
@@ -20,22 +19,12 @@ import scipy.sparse as sp
 import scipy.linalg
 import scipy.sparse.linalg as spla
 
-from ..geometry import Candidates
 from ..errors import InputError
 
 
 # =========================================================================== neighbours
 
 # =========================================================================== operators
-
-def rigidity(c: Candidates, n_part: int) -> sp.csr_matrix:
-    """S_C (Nc x d N): -n at i, +n at j (DESIGN §2)."""
-    nc, d = len(c), c.n.shape[1]
-    rows = np.repeat(np.arange(nc), 2 * d)
-    cols = np.concatenate([d * c.i[:, None] + np.arange(d), d * c.j[:, None] + np.arange(d)], axis=1)
-    vals = np.concatenate([-c.n, c.n], axis=1)
-    return sp.csr_matrix((vals.ravel(), (rows, cols.ravel())), shape=(nc, d * n_part))
-
 
 # =========================================================================== LCP
 

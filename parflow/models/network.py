@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from ..geometry import pair_vectors, velocity_gradient
+from ..geometry import pair_vectors, rigidity_csr, velocity_gradient
 from ..observables.correlation import (CORR_EXACT_MAX, CORR_GRID_MAX, CORR_METHODS,  # noqa: F401
                                       correlation, crossing_length)
 from ..observables.response import fit_two_exponentials, pick_rods, point_response
@@ -188,21 +188,9 @@ def observables(state: State, F) -> dict:
                 tension_fraction=float(np.count_nonzero(F.tau < 0)) / max(F.tau.size, 1))
 
 
-def sparse_S(n_unit: np.ndarray, i: np.ndarray, j: np.ndarray, n_nodes: int):
-    """S (Nc x dN, scipy CSR) of rods between nodes i and j with unit vectors ``n_unit``:
-    (S V)_alpha = n_alpha . (V_j - V_i)."""
-    import scipy.sparse as sp
-    nc, d = n_unit.shape
-    rows = np.repeat(np.arange(nc), 2 * d)
-    comp = np.arange(d)
-    cols = np.concatenate([d * i[:, None] + comp, d * j[:, None] + comp], axis=1).ravel()
-    vals = np.concatenate([-n_unit, n_unit], axis=1).ravel()
-    return sp.csr_matrix((vals, (rows, cols)), shape=(nc, d * n_nodes))
-
-
 def dense_N(n_unit: np.ndarray, bonds: Bonds, n_nodes: int) -> np.ndarray:
     """Dense N = S S^T from the unit vectors (sparse S, vectorised)."""
-    S = sparse_S(n_unit, bonds.i, bonds.j, n_nodes)
+    S = rigidity_csr(n_unit, bonds.i, bonds.j, n_nodes)
     return (S @ S.T).toarray()
 
 

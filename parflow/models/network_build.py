@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry import rigidity_csr
 from ..packing import fire as _pk
 from ..state import Bonds, InputError
 
@@ -127,16 +128,9 @@ def rigidity_matrix_dense(s: np.ndarray, h0: np.ndarray, bonds: Bonds) -> np.nda
 
 
 def rigidity_matrix_sparse(s: np.ndarray, h0: np.ndarray, bonds: Bonds):
-    """S as a scipy CSR matrix (Nb x dN), same layout as rigidity_matrix_dense."""
-    import scipy.sparse as sp
+    """S as a scipy CSR matrix (Nb x dN) at the reference cell (``geometry.rigidity_csr``)."""
     r = bond_vectors(s, h0, bonds)
-    nvec = r / np.linalg.norm(r, axis=1)[:, None]
-    nb, d = nvec.shape
-    k = np.arange(d)
-    rows = np.repeat(np.arange(nb), 2 * d)
-    cols = np.concatenate([d * bonds.j[:, None] + k, d * bonds.i[:, None] + k], axis=1).ravel()
-    vals = np.concatenate([nvec, -nvec], axis=1).ravel()
-    return sp.csr_matrix((vals, (rows, cols)), shape=(nb, d * s.shape[0]))
+    return rigidity_csr(r / np.linalg.norm(r, axis=1)[:, None], bonds.i, bonds.j, s.shape[0])
 
 
 def self_stress_check(s: np.ndarray, h0: np.ndarray, bonds: Bonds) -> dict:
