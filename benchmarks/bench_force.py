@@ -33,7 +33,7 @@ from petsc4py import PETSc  # noqa: E402
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models import chain  # noqa: E402
-from parflow.solvers import configure_cholesky  # noqa: E402
+from parflow.algebra.solvers import configure_cholesky  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402
 from parflow.dynamics.bonded import BondedSystem  # noqa: E402
 

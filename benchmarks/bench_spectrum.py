@@ -23,7 +23,7 @@ from petsc4py import PETSc  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
 from bench_force import lattice_state  # noqa: E402
-from parflow.spectrum import LowSpectrum, omega_from_lambda  # noqa: E402
+from parflow.algebra.spectrum import LowSpectrum, omega_from_lambda  # noqa: E402
 from parflow.dynamics.bonded import BondedSystem  # noqa: E402
 
 

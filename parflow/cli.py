@@ -1,7 +1,9 @@
 """Shared command-line plumbing: PETSc options first, one-line user errors, no MPI hangs."""
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 import traceback
 
 
@@ -41,6 +43,7 @@ def init_petsc(petsc_args: list[str]):
     already (``python -m parflow.spectrum`` imports it with the module, without arguments,
     and petsc4py.init then has no effect), the options are put into its database instead."""
     already = "petsc4py.PETSc" in sys.modules
+    # the first import of petsc4py, on purpose here: init() must see the options first
     import petsc4py
     petsc4py.init([sys.argv[0]] + petsc_args)
     from petsc4py import PETSc
@@ -62,26 +65,10 @@ def cmdline_option_names(petsc_args: list[str]) -> set[str]:
     return {a.lstrip("-") for a in petsc_args if a.startswith("-") and not _is_number(a)}
 
 
-def collective(comm, fn, *args):
-    """Run ``fn`` on rank 0 only; an InputError there is raised on every rank (no hang).
-    Returns fn's result, broadcast."""
-    from .state import InputError
-    result, err = None, None
-    if comm.getRank() == 0:
-        try:
-            result = fn(*args)
-        except InputError as exc:
-            err = str(exc)
-    result, err = comm.tompi4py().bcast((result, err), root=0)
-    if err is not None:
-        raise InputError(err)
-    return result
-
-
 def ranks_on_node(comm) -> int:
     """How many ranks of ``comm`` run on the same machine as rank 0 (collective): they share
     its memory."""
-    from mpi4py import MPI
+    from mpi4py import MPI      # (importing mpi4py initialises MPI: only once it is needed)
     if comm.getSize() == 1:
         return 1
     names = comm.tompi4py().gather(MPI.Get_processor_name(), root=0)
@@ -89,14 +76,10 @@ def ranks_on_node(comm) -> int:
 
 
 def _collective_cleanup():
-    """Destroy, on every rank at the same point, the PETSc objects that Python's garbage
-    collector released (petsc4py defers their collective destruction).  Left to
-    interpreter shutdown, the ranks reach it in different states and MPI hangs."""
-    import gc
-
-    from petsc4py import PETSc
-    gc.collect()
-    PETSc.garbage_cleanup()
+    """``algebra.solvers.collective_cleanup`` (imported here, at the end of a command: this
+    module is loaded before PETSc is initialised with the command line's options)."""
+    from .algebra.solvers import collective_cleanup     # (after init_petsc: see the docstring)
+    collective_cleanup()
 
 
 def run_main(prog: str, body) -> int:
@@ -111,16 +94,15 @@ def run_main(prog: str, body) -> int:
     checkpoint and status on the way out; a signal elsewhere, or a second one, aborts).
     Anything else: traceback, then MPI_Abort when running on several ranks.
     """
-    import signal
-
+    # here, not at the top: this module is loaded before PETSc is initialised with the
+    # command line's options, and these import petsc4py (and initialise MPI)
     from mpi4py import MPI
 
+    from .algebra.solvers import SolveError
     from .io import WriteError
-    from .solvers import SolveError
     from .state import STOPS, InputError, Terminated
     comm = MPI.COMM_WORLD
 
-    import threading
     if threading.current_thread() is threading.main_thread():   # (signals: main thread only)
         # SIGUSR1 / SIGUSR2 stand for SIGTERM / SIGINT: Open MPI's mpirun relays them to every
         # rank at once (SIGTERM and SIGINT it does not relay, it kills the ranks; docs/output.md

@@ -27,7 +27,7 @@ import time
 import h5py
 import numpy as np
 
-from .state import InputError
+from .state import InputError, State
 
 FORMAT = "parflow-run-1"
 
@@ -38,7 +38,6 @@ def check_output_path(path: str, overwrite: bool, flag: str = "--output") -> Non
     probe file, as long a name as the temporary files the writers use, is created and
     removed in it, so that a folder where files cannot be created -- /proc, a read-only
     mount -- is refused now rather than at the first write)."""
-    import errno
     if not isinstance(path, str) or not path.strip():
         raise InputError(f"the output path is empty: give a file name ({flag})")
     if "\x00" in path:
@@ -183,7 +182,7 @@ class RunWriter:
         with h5py.File(buf, "w") as f:
             f.attrs["format"] = FORMAT
             for k, v in attrs.items():
-                f.attrs[k] = _attr(v)
+                f.attrs[k] = h5_attr(v)
             for name, (arrays, gattrs) in groups.items():
                 _write_group(f, name, arrays, gattrs)
             f.create_group("timeseries")
@@ -454,7 +453,7 @@ def _apply(f, batch: dict) -> None:
     if batch["checkpoint"] is not None:
         _write_group(f, "checkpoint", *batch["checkpoint"])
     for k, v in batch["attrs"].items():
-        f.attrs[k] = _attr(v)
+        f.attrs[k] = h5_attr(v)
 
 
 def _remove(path: str) -> None:
@@ -496,10 +495,10 @@ def _write_group(f, name, arrays: dict, attrs: dict):
                 del g[k]
             g.create_dataset(k, data=np.asarray(v))
     for k, v in attrs.items():
-        g.attrs[k] = _attr(v)
+        g.attrs[k] = h5_attr(v)
 
 
-def _attr(v):
+def h5_attr(v):
     return v.replace("\x00", "") if isinstance(v, str) else v
 
 
@@ -523,7 +522,6 @@ def open_hdf5(path: str) -> h5py.File:
     """Open an HDF5 file read-only, with a clear error if it is missing, unreadable, not
     HDF5 at all, or an HDF5 file that is cut short or damaged (a copy that did not finish,
     a full disk)."""
-    import re
     if os.path.isdir(path):
         raise InputError(f"{path!r} is a directory, not an HDF5 file")
     if not os.path.isfile(path):
@@ -664,7 +662,6 @@ class RunFile:
     def initial_state(self, gamma: float = 0.0, s=None):
         """The run's State (/initial: cell, bonds, radii), with positions ``s`` (default: the
         initial ones) at strain ``gamma``, and /model attributes as its meta."""
-        from .state import State
         g = self.initial()
         if s is not None:
             g["s"] = s

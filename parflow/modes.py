@@ -23,6 +23,7 @@ import os
 import sys
 
 import numpy as np
+import scipy.sparse.linalg as sla
 
 from .geometry import cell_at, pair_geometry, rigidity_csr
 from .io import RunFile, atomic_h5, check_output_path, read_run
@@ -42,7 +43,6 @@ def mode_table(n_unit: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray, 
                k: int = 3) -> dict:
     """The k lowest modes of N = S S^T for rod unit vectors ``n_unit`` (Nc, d) between nodes
     i and j, with the stress share of each for affine rates ``b`` (see the module)."""
-    import scipy.sparse.linalg as sla
 
     S = rigidity_csr(n_unit, i, j, n_nodes)
     N = (S @ S.T).tocsc()
@@ -114,6 +114,7 @@ def write(out: str, res: dict, attrs: dict) -> None:
 
 
 def plot(res: dict, png: str, title: str = "") -> None:
+    # matplotlib only when a figure is drawn, and the Agg backend before pyplot
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -181,7 +182,7 @@ def main(argv=None) -> int:
     write(out, res, dict(source=os.path.abspath(a.run), k=a.k, command=" ".join(sys.argv)))
     print(f"{prog}: wrote {out} ({len(res['step'])} snapshots)")
     if not a.no_plot:
-        from .plot import default_outdir
+        from .plot import default_outdir     # (matplotlib only when a figure is drawn)
         d = default_outdir(a.run)
         os.makedirs(d, exist_ok=True)
         png = os.path.join(d, "modes.png")

@@ -23,13 +23,16 @@ import sys
 
 import numpy as np
 
+from .geometry import cell_at, velocity_gradient
+from .io import check_output_path, read_run
+from .models import suspension as su
+from .packing.pairs import pair_list
 from .state import InputError
 
 
 def rectangular_positions(s: np.ndarray, h0: np.ndarray, gamma: float) -> np.ndarray:
     """Positions (N, 2) in the rectangular box diag(h0) of a state at strain ``gamma`` whose
     sheared cell is a rectangle again (gamma * Ly / Lx an integer)."""
-    from .cell import cell_at, velocity_gradient
     Lx, Ly = float(h0[0, 0]), float(h0[1, 1])
     if abs(h0[0, 1]) > 0 or abs(h0[1, 0]) > 0:
         raise InputError("prepare: the run's reference cell is not rectangular")
@@ -51,8 +54,6 @@ def compress(X: np.ndarray, radii: np.ndarray, box: np.ndarray, phi: float,
     packing fraction ``phi`` and relaxed until no pair of discs inflated by (1 + inflate)
     overlaps.  Returns (positions, box, info).  InputError if phi is not above the current
     packing fraction, or if the compressed state does not relax (it is jammed at phi)."""
-    from .models import suspension as su
-    from .packing.pairs import pair_list
     su.check_phi(phi)
     phi0 = float(np.pi * np.sum(radii ** 2) / np.prod(box))
     if not phi > phi0:
@@ -80,7 +81,6 @@ def _min_image(d: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 def load_run_state(path: str, which: str = "checkpoint"):
     """(s, h0, gamma, radii, step) of a suspension run file's checkpoint or initial state."""
-    from .io import read_run
     with read_run(path) as f:
         if "initial" not in f or "radii" not in f["initial"]:
             raise InputError(f"prepare: {path!r} is not a suspension run (no initial/radii)")
@@ -113,14 +113,12 @@ def main(argv=None) -> int:
         if not np.isfinite(a.phi):
             raise InputError(f"prepare: --phi must be a finite number, got {a.phi}")
         s, h0, gamma, radii, step = load_run_state(a.run, a.which)
-        from .io import check_output_path
         if os.path.exists(a.out) and os.path.exists(a.run) and os.path.samefile(a.run, a.out):
             raise InputError(f"prepare: --out {a.out!r} is the run file itself")
         check_output_path(a.out, a.overwrite, "--out")
         X = rectangular_positions(s, h0, gamma)
         box = np.array([h0[0, 0], h0[1, 1]])
         pos, box1, info = compress(X, radii, box, a.phi)
-        from .models import suspension as su
         state = su.from_configuration(pos, radii, box1, 0.0)    # checks: no overlap, phi < phi_J
     except InputError as exc:
         print(f"parflow.prepare: error: {exc}", file=sys.stderr)

@@ -5,9 +5,13 @@ import os
 import subprocess
 import sys
 
+import h5py
 import numpy as np
+import scipy
+from mpi4py import MPI
 
 from . import __version__
+from .algebra.operators import petsc_version
 
 
 def git_commit() -> str:
@@ -25,16 +29,12 @@ def git_commit() -> str:
 def versions() -> str:
     """parflow, python, numpy, scipy, h5py, PETSc, MPI (and slepc4py) versions, one line.
     (Imported here, when a run starts: h5py, scipy and mpi4py are not needed before.)"""
-    import h5py
-    import scipy
-    from mpi4py import MPI
 
-    from .operators import petsc_version
     v = dict(parflow=__version__, python=sys.version.split()[0], numpy=np.__version__,
              scipy=scipy.__version__, h5py=h5py.__version__,
              petsc=petsc_version(), mpi=MPI.Get_library_version().split("\n")[0])
     try:   # the package version only: importing slepc4py.SLEPc would initialise SLEPc
-        import slepc4py   # on this rank alone and make the ranks' finalisation diverge
+        import slepc4py  # on this rank alone and make the ranks' finalisation diverge
         v["slepc4py"] = slepc4py.__version__
     except ImportError:
         pass

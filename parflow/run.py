@@ -20,11 +20,10 @@ import sys
 import time
 
 import numpy as np
-from petsc4py import PETSc
 
 from . import __version__
 from .checkpoint import read_checkpoint
-from .cli import collective
+from .errors import collective
 from .dynamics.engines import make_engine
 from .dynamics.heun import Jammed, StepControl
 from .io import RunWriter, WriteError, collective_write
@@ -32,7 +31,7 @@ from .models import get_model
 from .protocol import (Clock, Elapsed, EtaEstimate, Every, Leg, WallEvery, analyses_enabled,
                        analysis_trigger, hms)
 from .provenance import git_commit, versions
-from .solvers import SolveError, unused_options
+from .algebra.solvers import SolveError, all_options, unused_options
 from .state import STOPS, State, Terminated
 
 log = logging.getLogger("parflow")
@@ -102,7 +101,7 @@ class Run:
 
         eng.start()
         solver_desc, opts = eng.describe()
-        opts.update(PETSc.Options().getAll())
+        opts.update(all_options())
         unused = [o for o in unused_options() if not o.startswith(("spec_", "options_left"))]
         if unused:
             log.warning("WARNING: PETSc options set but not used: %s", ", ".join("-" + u for u in unused))

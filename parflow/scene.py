@@ -11,10 +11,10 @@ import math
 import re
 import tomllib
 
-from .dynamics.heun import CONTROLLERS, StepControl
-from .models import MODELS, get_model
-from .solvers import PARALLEL_FACTORS, PRESETS
+from .algebra.solvers import PARALLEL_FACTORS, PRESETS
 from .dynamics.bonded import REUSE_FACTOR
+from .dynamics.heun import CONTROLLERS, StepControl
+from .models import MODELS, check_memory, get_model
 from .state import InputError
 
 DEFAULT_SCENE = """\
@@ -246,8 +246,7 @@ def check_resources(scene: dict, n_ranks: int = 1, ranks_here: int | None = None
     """InputError if the scene's model is too large for this machine's memory on ``n_ranks``
     ranks (``ranks_here`` of them on this machine): an estimate from measured bytes per rod /
     particle / disc (``models.MEMORY``), checked before anything is allocated.  Reads the
-    machine, so call it on one rank (``cli.collective``), unlike load_scene."""
-    from .models import check_memory
+    machine, so call it on one rank (``errors.collective``), unlike load_scene."""
     check_memory(scene["model"]["name"], scene["model"], n_ranks, ranks_here,
                  scene.get("solver", {}).get("parallel", "auto"))
 

@@ -11,10 +11,12 @@ imports petsc4py is loaded, and ``--help``/``--print-scene`` need none of them.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 
-from .cli import cmdline_option_names, collective, init_petsc, run_main, split_petsc_args
+from .cli import cmdline_option_names, init_petsc, run_main, split_petsc_args
+from .errors import collective
 
 USAGE_FLAGS = {"--output", "--restart", "--max-steps", "--set"}
 
@@ -47,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     app, petsc_args = split_petsc_args(argv, USAGE_FLAGS)
     args = parser().parse_args(app)
     if args.print_scene:
+        # (here, not at the top: see the module docstring)
         from .scene import DEFAULT_SCENE
         print(DEFAULT_SCENE, end="")
         return 0
@@ -58,6 +61,7 @@ MAX_SCENE_BYTES = 1 << 20       # a scene is a page of TOML; more is not a scene
 
 
 def _read(path):
+    # (here, not at the top: see the module docstring)
     from .state import InputError
     try:
         with open(path, "rb") as fh:
@@ -81,6 +85,7 @@ def _branch(src: str, dst: str, overwrite: bool) -> int:
     """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint).
     ``src`` was checked by ``_restart_scene``; it is only read.  ``dst`` appears complete
     or not at all."""
+    # (here, not at the top: see the module docstring)
     from .io import atomic_h5, check_output_path
     from .state import InputError
     if os.path.abspath(src) == os.path.abspath(dst):
@@ -101,6 +106,7 @@ def _restart_scene(path):
     """The scene text and stored settings of the run file ``path``, after checking that its
     checkpoint can be restarted from (``checkpoint.check_checkpoint``): a hostile or damaged file
     is refused here, before the restart (or a branch) touches anything."""
+    # (here, not at the top: see the module docstring)
     from .checkpoint import check_checkpoint
     from .io import RunFile
     from .scene import load_scene
@@ -118,11 +124,12 @@ def _restart_scene(path):
 
 
 def _run(args, petsc_args, PETSc) -> int:
+    # (here, not at the top: see the module docstring)
     from .cli import ranks_on_node
     from .io import check_output_path
     from .run import Run, setup_logging
     from .scene import DEFAULT_SCENE, apply_settings, check_resources, load_scene, with_overrides
-    from .solvers import check_options_on, insert_options
+    from .algebra.solvers import check_options_on, insert_options
     from .state import InputError
 
     comm = PETSc.COMM_WORLD
@@ -157,7 +164,6 @@ def _run(args, petsc_args, PETSc) -> int:
         if branch:       # continue a copy of the run in another file; FILE is left as it is
             step = collective(comm, _branch, args.restart, args.output, args.overwrite)
             path = args.output
-            import logging
             logging.getLogger("parflow").info("branching %s at its checkpoint (step %d) into %s",
                                               args.restart, step, path)
     else:
@@ -182,10 +188,9 @@ def _same_file(a: str, b: str) -> bool:
 
 def _plots(path: str, quiet: bool) -> None:
     """Figures of the finished run, next to the file (python -m parflow.plot FILE redraws)."""
-    import logging
     log = logging.getLogger("parflow")
     try:
-        from .plot import make_plots
+        from .plot import make_plots     # (matplotlib only when figures are drawn)
         res = make_plots(path)
     except Exception as exc:            # a figure must never turn a good run into a failure
         log.warning("plots not drawn (%s: %s); run python -m parflow.plot %s", type(exc).__name__, exc, path)

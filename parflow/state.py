@@ -63,7 +63,7 @@ class StopSignals:
     def check(self, comm=None) -> None:
         code = self.pending
         if comm is not None and comm.getSize() > 1:
-            from mpi4py import MPI
+            from mpi4py import MPI      # (several ranks only: mpi4py is loaded then)
             code = comm.tompi4py().allreduce(code, op=MPI.MAX)
         if code:
             self.pending = 0

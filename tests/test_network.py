@@ -20,7 +20,7 @@ from parflow.models import network_build as nb
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
 from parflow.state import Bonds, InputError, Instant, State
-from parflow.solvers import SingularOperator
+from parflow.algebra.solvers import SingularOperator
 from parflow.dynamics.bonded import BondedSystem
 from systems import dense_operators
 

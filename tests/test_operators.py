@@ -6,7 +6,7 @@ import pytest
 from petsc4py import PETSc
 
 from parflow.geometry import cell_at, pair_geometry, velocity_gradient
-from parflow.solvers import SingularOperator
+from parflow.algebra.solvers import SingularOperator
 from parflow.dynamics.bonded import BondedSystem
 from parflow.state import Bonds, InputError, State
 
@@ -87,7 +87,7 @@ def test_affine_rate_across_the_lees_edwards_boundary():
 @pytest.mark.parametrize("parallel", ["replicated", "redundant", "mumps"])
 @pytest.mark.parametrize("flow", ["shear", "extension"])
 def test_omega_min_against_eigvalsh(comm, flow, parallel):
-    from parflow.spectrum import LowSpectrum, omega_from_lambda
+    from parflow.algebra.spectrum import LowSpectrum, omega_from_lambda
     st = random_bonded_state(n=50, extra=10, flow=flow, gamma=0.1, seed=5)
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     sysm.evaluate(st.s, 0.1)
@@ -132,7 +132,7 @@ def test_bad_bonds_rejected():
 def test_low_spectrum_follows_the_current_values_of_N(comm, shared):
     """One LowSpectrum object reused while N's values change (as in a run), with its own
     factor or sharing the force solver's; the force solve still works afterwards."""
-    from parflow.spectrum import LowSpectrum
+    from parflow.algebra.spectrum import LowSpectrum
     st = random_bonded_state(n=40, extra=8, flow="shear", gamma=0.0, seed=9)
     sysm = BondedSystem(PETSc.COMM_WORLD, st)
     spec = LowSpectrum(sysm.ops.N, k=2, ksp=sysm.tau_solver.ksp if shared else None)

@@ -527,7 +527,7 @@ path = "{path}"
 # ---------------------------------------------------------------------------------------
 PARFLOW = os.path.dirname(os.path.dirname(os.path.abspath(plot.__file__)))   # parflow/
 # what post/ and plot/ must never import (the solver side of parflow, PETSc, SLEPc)
-FORBIDDEN = ("parflow.models", "parflow.engines", "parflow.system", "parflow.solvers",
+FORBIDDEN = ("parflow.models", "parflow.engines", "parflow.system", "parflow.algebra.solvers",
              "parflow.spectrum", "parflow.dynamics", "parflow.algebra", "petsc4py", "slepc4py")
 
 

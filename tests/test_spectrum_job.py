@@ -9,7 +9,7 @@ from parflow.models import network as nw
 from parflow.models import network_build as nb
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
-from parflow.spectrum_job import load_state, main
+from parflow.spectrum import load_state, main
 
 
 @pytest.fixture(scope="module")

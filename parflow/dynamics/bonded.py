@@ -18,8 +18,8 @@ import numpy as np
 
 from ..geometry import cell_at, pair_geometry
 from ..observables import stress
-from ..operators import RigidityOperators
-from ..solvers import CholeskySolver, SingularOperator, SolveInfo, resolve_parallel
+from ..algebra.operators import RigidityOperators
+from ..algebra.solvers import CholeskySolver, SingularOperator, SolveInfo, comm_self, resolve_parallel
 from ..state import State
 
 
@@ -84,8 +84,7 @@ class BondedSystem:
         self.parallel = resolve_parallel(parallel, len(bd), comm.getSize())
         # the communicator of the algebra: COMM_SELF when every rank holds the whole system
         if self.parallel == "replicated" and comm.getSize() > 1:
-            from petsc4py import PETSc
-            comm = PETSc.COMM_SELF
+            comm = comm_self()
         self.comm = comm
         self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
         self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset, parallel)

@@ -21,7 +21,8 @@ import dataclasses
 import numpy as np
 
 from ..observables import stress
-from ..spectrum import lowest_omega, on_force_factor
+from ..algebra.solvers import collective_cleanup
+from ..algebra.spectrum import lowest_omega, on_force_factor
 from ..state import InputError, Instant, State
 from .bonded import BondedSystem, resolve_reuse
 from .hard_discs import ShearJammed, Suspension
@@ -262,12 +263,7 @@ class ContactEngine:
     def _cleanup(self) -> None:
         """Free the PETSc objects of the frozen-network systems now: petsc4py defers the
         destruction of dropped wrappers (each holds a factor) to garbage_cleanup()."""
-        import gc
-
-        from petsc4py import PETSc
-        gc.collect()
-        PETSc.garbage_cleanup(PETSc.COMM_SELF)
-        PETSc.garbage_cleanup(self.comm)        # collective: every rank is here
+        collective_cleanup(self.comm, self_too=True)      # collective: every rank is here
 
     def instant(self) -> Instant:
         """This instant for the model: the forces probed at the current configuration."""

@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..solvers import SingularOperator
-
+from ..algebra.solvers import SingularOperator
+from ..state import InputError
 
 CONTROLLERS = ("I", "PI")
 
@@ -51,7 +51,6 @@ class StepControl:
     controller: str = "I"
 
     def validate(self):
-        from ..state import InputError
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",
                      "length_tol"):
             v = getattr(self, name)

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 import scipy.linalg
-import scipy.sparse.linalg as spla
 
+from ..algebra.solvers import SelfFactor
 from ..errors import InputError
 
 
@@ -47,90 +47,6 @@ class LCPFailure(RuntimeError):
 
 
 FACTORS = ("cholmod", "superlu")
-
-
-def _petsc():
-    from petsc4py import PETSc
-    return PETSc
-
-
-class _Factor:
-    """A factorisation of one active N_AA, kept for repeated solves (CHOLMOD through PETSc on
-    COMM_SELF, or scipy's SuperLU).  ``solve`` returns None if the factorisation broke down."""
-
-    def __init__(self, M: sp.csr_matrix, factor: str):
-        self.kind, self.lu, self.ksp, self.factored, self.F = factor, None, None, False, None
-        if factor == "superlu":
-            try:
-                self.lu = spla.splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                    options=dict(SymmetricMode=True))
-            except RuntimeError:                       # "Factor is exactly singular"
-                return
-            piv = np.abs(self.lu.U.diagonal())
-            if piv.min() <= 1e-13 * piv.max():
-                self.lu = None
-            return
-        PETSc = _petsc()
-        it = PETSc.IntType
-        self.A = PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr.astype(it), M.indices.astype(it),
-                                                          M.data), comm=PETSc.COMM_SELF)
-        opts = PETSc.Options()
-        if not opts.hasName("contact_mat_cholmod_print"):
-            # a singular N_AA is routine here (detected, counted and handled): keep CHOLMOD
-            # from printing "matrix not positive definite" on stderr every time
-            opts.setValue("contact_mat_cholmod_print", 0)
-        self.ksp = ksp = PETSc.KSP().create(PETSc.COMM_SELF)
-        ksp.setOptionsPrefix("contact_")
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        self.pc = pc = ksp.getPC()
-        pc.setType(PETSc.PC.Type.CHOLESKY)
-        pc.setFactorSolverType("cholmod")
-        ksp.setOperators(self.A)
-        ksp.setFromOptions()
-        self.x, self.b = self.A.createVecs()
-
-    def solve(self, rhs: np.ndarray) -> np.ndarray | None:
-        """M^-1 rhs for one right-hand side (1-D) or several (the columns of a 2-D array)."""
-        if self.kind == "superlu":
-            return None if self.lu is None else self.lu.solve(rhs)
-        PETSc = _petsc()
-        if rhs.ndim == 2:
-            if not self.factored and self.solve(np.ascontiguousarray(rhs[:, 0])) is None:
-                return None                     # the first solve factorises: did it break down?
-            n, k = rhs.shape
-            B = PETSc.Mat().createDense((n, k), array=np.asfortranarray(rhs), comm=PETSc.COMM_SELF)
-            X = PETSc.Mat().createDense((n, k), comm=PETSc.COMM_SELF)
-            X.setUp()
-            if self.F is None:
-                # kept and destroyed with the rest: a dropped wrapper would hold the factor
-                # until PETSc.garbage_cleanup()
-                self.F = self.pc.getFactorMatrix()
-            try:
-                self.F.matSolve(B, X)
-                out = X.getDenseArray().copy()
-            except PETSc.Error:
-                out = None
-            B.destroy()
-            X.destroy()
-            return out
-        self.b.setArray(rhs)
-        try:                                   # the first solve factorises
-            self.ksp.solve(self.b, self.x)
-        except PETSc.Error:
-            return None
-        if self.ksp.getConvergedReason() < 0:
-            return None
-        self.factored = True
-        return self.x.getArray().copy()
-
-    def destroy(self):
-        if self.ksp is not None:
-            # pc too: petsc4py defers the destruction of a dropped wrapper to
-            # garbage_cleanup(), and the PC holds the factor (~10 MB at N_AA = 2000)
-            for o in (self.ksp, self.pc, self.A, self.x, self.b, self.F):
-                if o is not None:
-                    o.destroy()
-            self.ksp = self.F = None
 
 
 def _solution_ok(res: np.ndarray, x_A: np.ndarray, rhs: np.ndarray, norm: float,
@@ -179,7 +95,7 @@ class ActiveSolver:
     # ------------------------------------------------------------------ fresh factorisation
     def _factorise(self, M: sp.csr_matrix, rhs: np.ndarray):
         """(factor of M, M^-1 rhs or None if the factorisation broke down)."""
-        fac = _Factor(M, self.kind)
+        fac = SelfFactor(M, self.kind)
         y = fac.solve(rhs)
         if y is None and self.kind == "cholmod":
             # a CHOLMOD factorisation that breaks down leaks its partial factor (PETSc 3.18:

@@ -3,13 +3,16 @@ FLOW, build(params, seed) -> State, observables(state, F) -> dict and
 analyses(system, state, F) -> dict(arrays=..., scalars=...).  A model with
 ENGINE = "contacts" (suspension) is stepped by engines.ContactEngine instead and provides
 the hooks that engine calls (controls, restore_dict, analyses(comm, state, F, scene, dir))."""
+import os
 from importlib import import_module
+
+from ..algebra.solvers import PARALLEL_FACTORS, resolve_parallel
+from ..state import InputError
 
 MODELS = ("chain", "network", "suspension")
 
 
 def get_model(name: str):
-    from ..state import InputError
     if name not in MODELS:
         raise InputError(f"model.name must be one of {list(MODELS)}, got {name!r}")
     return import_module(f".{name}", __name__)
@@ -36,7 +39,6 @@ MEMORY = {
 def machine_memory() -> tuple[float, str]:
     """(bytes, where the number comes from): the machine's physical memory (MemTotal of
     /proc/meminfo, else sysconf), or the memory limit of this process's cgroup if smaller."""
-    import os
     total, where = None, ""
     try:
         with open("/proc/meminfo") as fh:
@@ -77,7 +79,6 @@ def memory_needed(name: str, n: int, n_ranks: int = 1, ranks_here: int | None = 
     one machine holding ``ranks_here`` of them (default: all): each rank holds the whole system
     when it is replicated (one rank; "replicated"/"redundant"; "auto" below
     solvers.AUTO_REPLICATED_MAX_NC rows), else the ranks share the distributed part."""
-    from ..solvers import PARALLEL_FACTORS, resolve_parallel
     m = MEMORY[name]
     here = n_ranks if ranks_here is None else ranks_here
     rows = min(float(n) * m["rows_per_unit"], 2.0 ** 62)
@@ -94,7 +95,6 @@ def check_memory(name: str, params: dict, n_ranks: int = 1, ranks_here: int | No
                  parallel: str = "auto", available: tuple[float, str] | None = None) -> None:
     """InputError if the run would need more memory than the machine has (before anything
     is allocated: model.N up to 2^70 and beyond is only multiplied here)."""
-    from ..state import InputError
     if name not in MEMORY or not isinstance(params.get("N"), int):
         return
     n = params["N"]

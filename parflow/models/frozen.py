@@ -18,8 +18,8 @@ import numpy as np
 from ..dynamics.bonded import BondedSystem
 from ..dynamics.heun import Heun, Jammed, StepControl
 from ..observables.contacts import FORCE_BEARING_REL, force_bearing
-from ..solvers import SolveError
-from ..spectrum import omega_min_on
+from ..algebra.solvers import SolveError
+from ..algebra.spectrum import omega_min_on
 from ..state import Bonds, InputError, State
 
 

@@ -34,7 +34,7 @@ from ..geometry import pair_vectors, rigidity_csr, velocity_gradient
 from ..observables.correlation import (CORR_EXACT_MAX, CORR_GRID_MAX, CORR_METHODS,  # noqa: F401
                                       correlation, crossing_length)
 from ..observables.response import fit_two_exponentials, pick_rods, point_response
-from ..spectrum import omega_from_lambda, on_force_factor
+from ..algebra.spectrum import omega_from_lambda, on_force_factor
 from ..state import Bonds, InputError, Instant, State
 from . import network_build as _nb
 

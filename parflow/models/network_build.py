@@ -39,9 +39,12 @@ import os
 import time
 from dataclasses import dataclass, field
 
+import h5py
 import numpy as np
 
+from .. import __version__
 from ..geometry import rigidity_csr
+from ..io import atomic_h5
 from ..packing import fire as _pk
 from ..state import Bonds, InputError
 
@@ -326,53 +329,26 @@ def make_network(n: int, z: float, *, phi: float = DEFAULT_PHI, d: int = 2, seed
 
 # --------------------------------------------------------------------------- HDF5
 
-def _h5py():
-    try:
-        import h5py
-    except ImportError as e:  # pragma: no cover
-        raise InputError("h5py is required to save/load networks (Debian: python3-h5py)") from e
-    return h5py
-
-
 def save_network(path: str, net: Network) -> None:
-    """Write ``net`` to HDF5 atomically (temp file, fsync, rename)."""
-    h5py = _h5py()
-    path = os.fspath(path)
-    tmp = path + ".tmp"
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["format_version"] = FORMAT_VERSION
-            try:
-                from .. import __version__ as ver
-            except ImportError:  # pragma: no cover
-                ver = "unknown"
-            f.attrs["parflow_version"] = ver
-            f.attrs["d"] = net.d
-            f.attrs["n_nodes"] = net.n
-            f.attrs["n_bonds"] = len(net.bonds)
-            f.attrs["z"] = net.z
-            f.attrs["z0"] = net.z0
-            f.attrs["seed"] = net.seed
-            f.create_dataset("s", data=net.s)
-            f.create_dataset("h0", data=net.h0)
-            g = f.create_group("bonds")
-            g.create_dataset("i", data=net.bonds.i)
-            g.create_dataset("j", data=net.bonds.j)
-            g.create_dataset("shift", data=net.bonds.shift)
-            g.create_dataset("l0", data=net.bonds.l0)
-            _write_info(f.create_group("info"), net.info)
-            f.flush()
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    """Write ``net`` to HDF5, whole or not at all (``io.atomic_h5``)."""
+    with atomic_h5(os.fspath(path)) as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["parflow_version"] = __version__
+        f.attrs["d"] = net.d
+        f.attrs["n_nodes"] = net.n
+        f.attrs["n_bonds"] = len(net.bonds)
+        f.attrs["z"] = net.z
+        f.attrs["z0"] = net.z0
+        f.attrs["seed"] = net.seed
+        f.create_dataset("s", data=net.s)
+        f.create_dataset("h0", data=net.h0)
+        g = f.create_group("bonds")
+        g.create_dataset("i", data=net.bonds.i)
+        g.create_dataset("j", data=net.bonds.j)
+        g.create_dataset("shift", data=net.bonds.shift)
+        g.create_dataset("l0", data=net.bonds.l0)
+        _write_info(f.create_group("info"), net.info)
 
 
 def _write_info(g, info: dict):
@@ -390,7 +366,6 @@ def _write_info(g, info: dict):
 
 
 def _read_info(g) -> dict:
-    h5py = _h5py()
     out = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in g.attrs.items()}
     for k, v in g.items():
         out[k] = _read_info(v) if isinstance(v, h5py.Group) else v[()]
@@ -401,7 +376,6 @@ def load_network(path: str) -> Network:
     """Read and validate a network written by save_network.  Any problem (missing file,
     not HDF5, not a parflow network, unknown version, inconsistent arrays, rest lengths
     that do not match the geometry) is an InputError saying what is wrong."""
-    h5py = _h5py()
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputError(f"network file {path!r} does not exist")

@@ -39,8 +39,8 @@ from ..packing.fire import fire_minimize
 from ..packing.mixture import PHI_J_2D as PHI_J
 from ..packing.mixture import RADIUS_RATIO, binary_radii, check_mixture, check_phi
 from ..packing.pairs import pair_list, wrap01
-from ..solvers import SolveError
-from ..spectrum import omega_min_on
+from ..algebra.solvers import SolveError
+from ..algebra.spectrum import omega_min_on
 from ..state import InputError, Instant, State
 from . import frozen as fz
 

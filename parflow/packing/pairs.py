@@ -42,6 +42,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import time
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -116,10 +117,9 @@ def pair_list(radii: np.ndarray, box, skin: float, kernel: str = "auto",
 def numba_kernels():
     """The module of the compiled kernel, imported at first use: numba is optional, and
     importing it (llvmlite) costs ~0.5 s that the numpy kernel should not pay."""
-    import warnings
     with warnings.catch_warnings():          # llvmlite's import-time DeprecationWarning
         warnings.simplefilter("ignore", DeprecationWarning)
-        from . import pairs_numba
+        from . import pairs_numba            # (numba: optional, ~0.5 s to import)
     return pairs_numba
 
 

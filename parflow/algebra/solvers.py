@@ -13,10 +13,16 @@ table or on the command line (which wins) overrides them.
 """
 from __future__ import annotations
 
+import ctypes
+import gc
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from petsc4py import PETSc
+
+from ..errors import InputError, collective
 
 PRESETS = {
     # name: (refinement steps allowed, relative residual that triggers refinement)
@@ -125,7 +131,6 @@ def options_under(prefix: str) -> dict[str, str | None]:
 def _rejected(prefix: str, exc: Exception, cmdline: set[str] | None = None, shown: str | None = None):
     """InputError naming the options given under ``prefix`` that PETSc rejected (those whose
     value PETSc's message quotes; else all of them) and what PETSc said."""
-    from .state import InputError
     msg = petsc_message(exc)
     given = {k: v for k, v in options_under(prefix).items()
              if not any(w in k for w in _OUTPUT_OPTIONS)}
@@ -176,7 +181,7 @@ def check_options(cmdline: set[str] | None = None, prefixes=tuple(PREFIXES)) -> 
         try:
             if kind == "eps":
                 try:
-                    from slepc4py import SLEPc
+                    from slepc4py import SLEPc    # at first use: only when asked for
                 except ImportError:
                     continue
                 eps = SLEPc.EPS().create(PETSc.COMM_SELF)
@@ -220,10 +225,9 @@ def check_options_on(comm, cmdline: set[str] | None = None) -> None:
     """:func:`check_options` on rank 0, its InputError raised on every rank.  SLEPc is
     imported on every rank first when eigensolver options are given: its initialisation and
     finalisation are collective, and a SLEPc started on rank 0 alone hangs the exit."""
-    from .cli import collective
     if options_under("spec_"):
         try:
-            from slepc4py import SLEPc  # noqa: F401
+            from slepc4py import SLEPc  # noqa: F401  (initialises SLEPc on every rank)
         except ImportError:
             pass
     collective(comm, check_options, cmdline)
@@ -349,7 +353,6 @@ def _reason_name(reason: int) -> str:
 def unused_options() -> list[str]:
     """Names of options in PETSc's database that no object has queried (PetscOptionsLeftGet,
     reached through ctypes: petsc4py has no binding for it).  Empty if unavailable."""
-    import ctypes
     try:
         path = next(line.split()[-1] for line in open("/proc/self/maps")
                     if "libpetsc" in line and ".so" in line)
@@ -365,3 +368,110 @@ def unused_options() -> list[str]:
         return out
     except (OSError, StopIteration, AttributeError):
         return []
+
+
+# =========================================================================== one-rank factors
+
+class SelfFactor:
+    """A factorisation of one symmetric matrix on one rank, kept for repeated solves (the
+    contact LCP's active N_AA): CHOLMOD through PETSc on COMM_SELF (options prefix
+    ``contact_``), or scipy's SuperLU.  ``solve`` returns None if the factorisation broke
+    down (a singular N_AA is routine there: detected and handled by the caller)."""
+
+    def __init__(self, M: sp.csr_matrix, factor: str):
+        self.kind, self.lu, self.ksp, self.factored, self.F = factor, None, None, False, None
+        if factor == "superlu":
+            try:
+                self.lu = spla.splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                    options=dict(SymmetricMode=True))
+            except RuntimeError:                       # "Factor is exactly singular"
+                return
+            piv = np.abs(self.lu.U.diagonal())
+            if piv.min() <= 1e-13 * piv.max():
+                self.lu = None
+            return
+        it = PETSc.IntType
+        self.A = PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr.astype(it), M.indices.astype(it),
+                                                          M.data), comm=PETSc.COMM_SELF)
+        opts = PETSc.Options()
+        if not opts.hasName("contact_mat_cholmod_print"):
+            # a singular N_AA is routine here (detected, counted and handled): keep CHOLMOD
+            # from printing "matrix not positive definite" on stderr every time
+            opts.setValue("contact_mat_cholmod_print", 0)
+        self.ksp = ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+        ksp.setOptionsPrefix("contact_")
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        self.pc = pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("cholmod")
+        ksp.setOperators(self.A)
+        ksp.setFromOptions()
+        self.x, self.b = self.A.createVecs()
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray | None:
+        """M^-1 rhs for one right-hand side (1-D) or several (the columns of a 2-D array)."""
+        if self.kind == "superlu":
+            return None if self.lu is None else self.lu.solve(rhs)
+        if rhs.ndim == 2:
+            if not self.factored and self.solve(np.ascontiguousarray(rhs[:, 0])) is None:
+                return None                     # the first solve factorises: did it break down?
+            n, k = rhs.shape
+            B = PETSc.Mat().createDense((n, k), array=np.asfortranarray(rhs), comm=PETSc.COMM_SELF)
+            X = PETSc.Mat().createDense((n, k), comm=PETSc.COMM_SELF)
+            X.setUp()
+            if self.F is None:
+                # kept and destroyed with the rest: a dropped wrapper would hold the factor
+                # until PETSc.garbage_cleanup()
+                self.F = self.pc.getFactorMatrix()
+            try:
+                self.F.matSolve(B, X)
+                out = X.getDenseArray().copy()
+            except PETSc.Error:
+                out = None
+            B.destroy()
+            X.destroy()
+            return out
+        self.b.setArray(rhs)
+        try:                                   # the first solve factorises
+            self.ksp.solve(self.b, self.x)
+        except PETSc.Error:
+            return None
+        if self.ksp.getConvergedReason() < 0:
+            return None
+        self.factored = True
+        return self.x.getArray().copy()
+
+    def destroy(self):
+        if self.ksp is not None:
+            # pc too: petsc4py defers the destruction of a dropped wrapper to
+            # garbage_cleanup(), and the PC holds the factor (~10 MB at N_AA = 2000)
+            for o in (self.ksp, self.pc, self.A, self.x, self.b, self.F):
+                if o is not None:
+                    o.destroy()
+            self.ksp = self.F = None
+
+
+# =========================================================================== plumbing
+
+def collective_cleanup(comm=None, self_too: bool = False) -> None:
+    """Destroy, on every rank at the same point, the PETSc objects that Python's garbage
+    collector released (petsc4py defers their collective destruction; each may hold a
+    factor).  Left to interpreter shutdown, the ranks reach it in different states and MPI
+    hangs.  Collective on ``comm`` (default COMM_WORLD); ``self_too``: COMM_SELF's first."""
+    gc.collect()
+    if self_too:
+        PETSc.garbage_cleanup(PETSc.COMM_SELF)
+    if comm is None:
+        PETSc.garbage_cleanup()
+    else:
+        PETSc.garbage_cleanup(comm)
+
+
+def all_options() -> dict:
+    """Every option in PETSc's database (recorded in the run file)."""
+    return PETSc.Options().getAll()
+
+
+def comm_self():
+    """PETSc's COMM_SELF (the algebra of a system every rank holds whole)."""
+    return PETSc.COMM_SELF

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from mpi4py import MPI
 from petsc4py import PETSc
 
 
@@ -124,7 +125,6 @@ class RigidityOperators:
     def matvec_at(self, n: np.ndarray):
         """x -> N(n) x for replicated x (Nc,), replicated out, with N built from the unit
         vectors n in scipy CSR (the PETSc Mat is not touched)."""
-        import scipy.sparse as sp
         A = sp.csr_matrix((self._values(n), self._n_indices, self._n_indptr),
                           shape=(self.hi - self.lo, self.nc))
         if self.comm.getSize() == 1:
@@ -190,7 +190,6 @@ class RigidityOperators:
 
 
 def _mpi_max():
-    from mpi4py import MPI
     return MPI.MAX
 
 
