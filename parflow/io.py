@@ -23,13 +23,27 @@ import os
 import re
 import shutil
 import time
+from dataclasses import dataclass
 
 import h5py
 import numpy as np
 
+from .schema import POSITIVE
+from .schema import key as _key
+
 from .state import InputError, State
 
 FORMAT = "parflow-run-1"
+
+
+@dataclass
+class OutputOptions:
+    """The scene's [output] table (``schema``)."""
+    path: str = _key("out/run.h5", lambda v: len(v) > 0, "a non-empty path", "the run file")
+    flush_seconds: float = _key(30.0, *POSITIVE, "seconds between flushes (and at every checkpoint)")
+    checkpoint_every: int = _key(500, *POSITIVE, "steps between checkpoints")
+    checkpoint_minutes: float = _key(5.0, *POSITIVE, "minutes between checkpoints")
+    progress_seconds: float = _key(2.0, *POSITIVE, "seconds between progress lines")
 
 
 def check_output_path(path: str, overwrite: bool, flag: str = "--output") -> None:

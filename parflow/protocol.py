@@ -30,7 +30,46 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .schema import NON_NEGATIVE, POSITIVE, key
+
 _NO_LEVEL = -10**9      # how run files before the schedule-as-data code stored "no decade yet"
+
+
+STOP_KEYS = ("sigma_above", "sigma_below", "V2_above", "V2_below", "strain", "max_steps")
+
+
+@dataclass
+class ObservablesOptions:
+    """The scene's [observables] table: what is measured when (``schema``)."""
+    omega_min_every: int = key(0, *NON_NEGATIVE, "steps between omega_min (0: never)")
+    n_eigs: int = key(1, *POSITIVE, "eigenpairs asked of SLEPc for omega_min")
+    analysis_quantity: str = key("V2", lambda v: v in ("V2", "sigma"), "'V2' or 'sigma'",
+                                 "the quantity analysis_per_decade follows")
+    analysis_per_decade: float = key(0.0, *NON_NEGATIVE, "analyses per decade of it (0: none)")
+    analysis_every: int = key(0, *NON_NEGATIVE, "or analyses every n steps")
+    analysis_strain: float = key(0.0, *NON_NEGATIVE, "or every time this much strain accumulated")
+    analysis_from_strain: float = key(0.0, *NON_NEGATIVE, "no analyses before this strain")
+    snapshot_every: int = key(0, *NON_NEGATIVE, "steps between snapshots (0: none)")
+
+
+@dataclass
+class ProtocolOptions:
+    """The scene's [protocol] table (its legs: [[protocol.leg]], :class:`LegRule`)."""
+    max_steps: int = key(1_000_000, *POSITIVE, "total step budget (status 'budget' when used)")
+    leg: list = key(None, None, "", "the legs, in order")
+
+
+@dataclass
+class LegRule:
+    """One [[protocol.leg]]: a direction and at least one stop rule (the first met ends it)."""
+    direction: str = key(None, lambda v: v in ("forward", "reverse"), "'forward' or 'reverse'",
+                         "the flow direction")
+    sigma_above: float = key(None, *POSITIVE, "stop when sigma >= this")
+    sigma_below: float = key(None, *POSITIVE, "stop when sigma <= this")
+    V2_above: float = key(None, *POSITIVE, "stop when <V^2> >= this")
+    V2_below: float = key(None, *POSITIVE, "stop when <V^2> <= this")
+    strain: float = key(None, *POSITIVE, "stop after this much strain in the leg")
+    max_steps: int = key(None, *POSITIVE, "stop after this many steps in the leg")
 
 
 @dataclass

@@ -11,10 +11,15 @@ import math
 import re
 import tomllib
 
-from .algebra.solvers import PARALLEL_FACTORS, PRESETS
-from .dynamics.bonded import REUSE_FACTOR
-from .dynamics.heun import CONTROLLERS, StepControl
+from dataclasses import dataclass
+
+from .algebra.solvers import SolverOptions
+from .dynamics.heun import StepControl
+from .io import OutputOptions
 from .models import MODELS, check_memory, get_model
+from .protocol import STOP_KEYS, LegRule, ObservablesOptions, ProtocolOptions
+from .schema import NON_NEGATIVE, Key, from_params, table
+from .schema import key as _key
 from .state import InputError
 
 DEFAULT_SCENE = """\
@@ -46,68 +51,32 @@ analysis_per_decade = 2
 path = "out/default.h5"
 """
 
-_POS = (lambda v: v > 0, "> 0")
-_NONNEG = (lambda v: v >= 0, ">= 0")
+@dataclass
+class SceneOptions:
+    """The scene's top-level keys (``schema``)."""
+    title: str = _key("", None, "", "free text")
+    seed: int = _key(1, *NON_NEGATIVE, "same seed, same result")
 
-# section -> key -> (type, default, (check, allowed-text) or None)
+
+# section -> key -> schema.Key(type, default, check, allowed, doc): each section's keys are
+# declared once, by the dataclass of the code that uses them
 SCHEMA = {
-    "": {
-        "title": (str, "", None),
-        "seed": (int, 1, _NONNEG),
-    },
-    "protocol": {
-        "max_steps": (int, 1_000_000, _POS),
-        "leg": (list, None, None),
-    },
-    "integrator": {
-        "tol": (float, 0.05, (lambda v: 0 < v < 1, "in (0, 1)")),
-        "max_displacement": (float, 0.05, _POS),
-        "max_dgamma": (float, 1e-2, _POS),
-        "min_dgamma": (float, 1e-14, _POS),
-        "initial_dgamma": (float, 1e-4, _POS),
-        "length_tol": (float, 1e-12, _POS),
-        "controller": (str, "I", (lambda v: v in CONTROLLERS, f"one of {list(CONTROLLERS)}")),
-    },
-    "observables": {
-        "omega_min_every": (int, 0, _NONNEG),
-        "n_eigs": (int, 1, _POS),
-        "analysis_quantity": (str, "V2", (lambda v: v in ("V2", "sigma"), "'V2' or 'sigma'")),
-        "analysis_per_decade": (float, 0.0, _NONNEG),
-        "analysis_every": (int, 0, _NONNEG),
-        "analysis_strain": (float, 0.0, _NONNEG),
-        "analysis_from_strain": (float, 0.0, _NONNEG),
-        "snapshot_every": (int, 0, _NONNEG),
-    },
-    "solver": {
-        "preset": (str, "direct", (lambda v: v in PRESETS, f"one of {sorted(PRESETS)}")),
-        "parallel": (str, "auto", (lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}")),
-        "reuse_factor": (str, "auto", (lambda v: v in REUSE_FACTOR, f"one of {list(REUSE_FACTOR)}")),
-    },
-    "output": {
-        "path": (str, "out/run.h5", (lambda v: len(v) > 0, "a non-empty path")),
-        "flush_seconds": (float, 30.0, _POS),
-        "checkpoint_every": (int, 500, _POS),
-        "checkpoint_minutes": (float, 5.0, _POS),
-        "progress_seconds": (float, 2.0, _POS),
-    },
+    "": table(SceneOptions),
+    "protocol": table(ProtocolOptions),
+    "integrator": table(StepControl),
+    "observables": table(ObservablesOptions),
+    "solver": table(SolverOptions),
+    "output": table(OutputOptions),
 }
-# step-control presets (the speed/accuracy trade; measured in docs/benchmarks.md)
+# step-control presets (the speed/accuracy trade; measured in docs/benchmarks.md): the keys
+# they set; "default" is StepControl's own defaults
 INTEGRATOR_PRESETS = {
     "fast": dict(tol=0.2, max_displacement=0.2),
-    "default": dict(tol=0.05, max_displacement=0.05),
+    "default": {},
     "tight": dict(tol=0.01, max_displacement=0.01),
 }
 
-LEG = {
-    "direction": (str, None, (lambda v: v in ("forward", "reverse"), "'forward' or 'reverse'")),
-    "sigma_above": (float, None, _POS),
-    "sigma_below": (float, None, _POS),
-    "V2_above": (float, None, _POS),
-    "V2_below": (float, None, _POS),
-    "strain": (float, None, _POS),
-    "max_steps": (int, None, _POS),
-}
-STOP_KEYS = ("sigma_above", "sigma_below", "V2_above", "V2_below", "strain", "max_steps")
+LEG = table(LegRule)
 SECTIONS = ("model", "protocol", "integrator", "observables", "solver", "output", "petsc")
 
 
@@ -135,15 +104,15 @@ def _fill(table: dict, schema: dict, where: str) -> dict:
     for key in table:
         if key not in schema:
             raise _unknown(key, schema, where)
-    for key, (typ, default, check) in schema.items():
-        if key not in table:
-            if default is not None:
-                out[key] = default
+    for name, k in schema.items():
+        if name not in table:
+            if k.default is not None:
+                out[name] = k.default
             continue
-        value = _typed(table[key], typ, f"{where}{key}")
-        if check is not None and not check[0](value):
-            raise InputError(f"{where}{key} = {value!r} is out of range: must be {check[1]}")
-        out[key] = value
+        value = _typed(table[name], k.type, f"{where}{name}")
+        if k.check is not None and not k.check(value):
+            raise InputError(f"{where}{name} = {value!r} is out of range: must be {k.allowed}")
+        out[name] = value
     return out
 
 
@@ -197,18 +166,31 @@ def _model(table: dict) -> dict:
     if not isinstance(name, str):
         raise InputError(f"model.name must be a string, one of {list(MODELS)}")
     model = get_model(name)
-    schema = {"name": (str, name, None)}
-    for key, (typ, default, check, desc) in model.PARAMS.items():
-        schema[key] = (typ, default, None if check is None else (check, desc))
+    schema = {"name": Key(str, name), **from_params(model.PARAMS)}
     return _fill(table, schema, "model.")
+
+
+def _flatten_petsc(table: dict, prefix: str = "") -> dict:
+    """Nested tables name a prefix: [petsc.tau] ksp_type = "cg" is tau_ksp_type = "cg" (a
+    table per solver, e.g. [petsc.tau], [petsc.spec], [petsc.contact])."""
+    out = {}
+    for key, value in table.items():
+        name = f"{prefix}{key.lstrip('-')}"
+        if isinstance(value, dict):
+            for k, v in _flatten_petsc(value, name + "_").items():
+                if k in out:
+                    raise InputError(f"petsc.{k} is given twice (flat and in a nested table)")
+                out[k] = v
+        elif name in out:
+            raise InputError(f"petsc.{name} is given twice (flat and in a nested table)")
+        else:
+            out[name] = value
+    return out
 
 
 def _petsc(table: dict) -> dict:
     out = {}
-    for key, value in table.items():
-        if isinstance(value, dict):
-            raise InputError(f"petsc.{key}: PETSc options are flat: write "
-                             f"{key}_<option> = value")
+    for key, value in _flatten_petsc(table).items():
         if not isinstance(value, (str, int, float, bool)):
             raise InputError(f"petsc.{key} must be a string, number or boolean")
         name = key.lstrip("-")

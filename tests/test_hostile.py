@@ -162,7 +162,8 @@ def test_petsc_option_values_rejected(tmp_path, option, named, petsc_says, where
     ('tau_pc_type = "lu cholesky"', "an option value is one word"),
     ('tau_pc_type = "-lu"', "an option value is one word"),
     ("tau_ksp_rtol = nan", "must be finite"),
-    ("tau = { pc_type = 'lu' }", "PETSc options are flat"),
+    ("tau = { pc_type = 'lu', ksp = { type = 'c g' } }", "an option value is one word"),
+    ("tau = { pc_type = 'lu' }\ntau_pc_type = 'cholesky'", "given twice"),
 ])
 def test_petsc_table_entries_petsc_would_misread(entry, message):
     """Keys and values that PETSc's option parser would split or drop silently."""

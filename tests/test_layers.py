@@ -12,7 +12,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent / "parflow"
 
 # layer of each package or top-level module: a module may import its own layer and below
 LAYERS = {
-    "errors": 0, "__init__": 0,
+    "errors": 0, "__init__": 0, "schema": 0,
     "geometry": 1, "state": 1,
     "packing": 2, "algebra": 2, "observables": 2, "io": 2,
     "dynamics": 3,

@@ -23,6 +23,7 @@ import scipy.sparse.linalg as spla
 from petsc4py import PETSc
 
 from ..errors import InputError, collective
+from ..schema import key
 
 PRESETS = {
     # name: (refinement steps allowed, relative residual that triggers refinement)
@@ -41,9 +42,21 @@ class SingularOperator(SolveError):
 
 
 PARALLEL_FACTORS = ("auto", "replicated", "redundant", "mumps")
+REUSE_FACTOR = ("auto", "on", "off")      # solver.reuse_factor (dynamics.bonded.resolve_reuse)
 # "auto" replicates the algebra on every rank up to this many rows of N (the CHOLMOD factor of a
 # 2D network with Nc = 1e6 takes ~1 GB); beyond, the distributed MUMPS factorisation
 AUTO_REPLICATED_MAX_NC = 2_000_000
+
+
+@dataclass
+class SolverOptions:
+    """The scene's [solver] table (``schema``)."""
+    preset: str = key("direct", lambda v: v in PRESETS, f"one of {sorted(PRESETS)}",
+                      "refinement of the direct solve (docs/solvers.md)")
+    parallel: str = key("auto", lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}",
+                        "how several ranks share the algebra")
+    reuse_factor: str = key("auto", lambda v: v in REUSE_FACTOR, f"one of {list(REUSE_FACTOR)}",
+                            "a step's last force by PCG on its predictor's factor")
 
 
 def resolve_parallel(parallel: str, n_rows: int, comm_size: int) -> str:

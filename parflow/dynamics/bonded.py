@@ -19,7 +19,8 @@ import numpy as np
 from ..geometry import cell_at, pair_geometry
 from ..observables import stress
 from ..algebra.operators import RigidityOperators
-from ..algebra.solvers import CholeskySolver, SingularOperator, SolveInfo, comm_self, resolve_parallel
+from ..algebra.solvers import (REUSE_FACTOR, CholeskySolver, SingularOperator, SolveInfo, comm_self,
+                               resolve_parallel)
 from ..state import State
 
 
@@ -59,7 +60,6 @@ REUSE_MAX_IT = 25
 # solver.reuse_factor = "auto": on for models that ask for it (a 2D network's factor costs
 # ~20-30 solves at Nc = 1.9e6) from this many rows of N, and with the "direct" preset only
 REUSE_AUTO_MIN_NC = 250_000
-REUSE_FACTOR = ("auto", "on", "off")
 
 
 def resolve_reuse(reuse: str, n_rows: int, preset: str, model_allows: bool) -> bool:

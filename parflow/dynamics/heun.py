@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..algebra.solvers import SingularOperator
+from ..schema import POSITIVE, key
 from ..state import InputError
 
 CONTROLLERS = ("I", "PI")
@@ -42,13 +43,16 @@ class Jammed(RuntimeError):
 
 @dataclass
 class StepControl:
-    tol: float = 0.05
-    max_displacement: float = 0.05
-    max_dgamma: float = 1e-2
-    min_dgamma: float = 1e-14
-    initial_dgamma: float = 1e-4
-    length_tol: float = 1e-12
-    controller: str = "I"
+    """The scene's [integrator] table (``schema``: each key declared once, here)."""
+    tol: float = key(0.05, lambda v: 0 < v < 1, "in (0, 1)",
+                     "accept a step if |V1 - V0| / |V| <= tol")
+    max_displacement: float = key(0.05, *POSITIVE, "largest non-affine displacement per step (a0)")
+    max_dgamma: float = key(1e-2, *POSITIVE, "largest strain step")
+    min_dgamma: float = key(1e-14, *POSITIVE, "below this step the system is declared jammed")
+    initial_dgamma: float = key(1e-4, *POSITIVE, "the first strain step")
+    length_tol: float = key(1e-12, *POSITIVE, "rod-length projection tolerance")
+    controller: str = key("I", lambda v: v in CONTROLLERS, f"one of {list(CONTROLLERS)}",
+                          "step-size control: I (dg ~ tol/err) or PI")
 
     def validate(self):
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",
