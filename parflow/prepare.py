@@ -23,8 +23,8 @@ import sys
 
 import numpy as np
 
-from .geometry import cell_at, velocity_gradient
-from .io import check_output_path, read_run
+from .geometry import MinImage, cell_at, velocity_gradient
+from .io import RunFile, check_output_path
 from .models import suspension as su
 from .packing.pairs import pair_list
 from .state import InputError
@@ -72,26 +72,23 @@ def compress(X: np.ndarray, radii: np.ndarray, box: np.ndarray, phi: float,
     pos = (X1.T - np.floor(X1.T / box1) * box1)
     return pos, box1, dict(phi0=phi0, fire_iterations=int(info["iterations"]),
                            rms_move=float(np.sqrt(np.mean(np.sum(
-                               _min_image(pos - X * scale, box1) ** 2, axis=1)))))
-
-
-def _min_image(d: np.ndarray, box: np.ndarray) -> np.ndarray:
-    return d - np.round(d / box) * box
+                               MinImage(np.diag(box1)).vectors((pos - X * scale) / box1) ** 2,
+                               axis=1)))))
 
 
 def load_run_state(path: str, which: str = "checkpoint"):
     """(s, h0, gamma, radii, step) of a suspension run file's checkpoint or initial state."""
-    with read_run(path) as f:
-        if "initial" not in f or "radii" not in f["initial"]:
+    with RunFile(path) as run:
+        init = run.initial()
+        if "radii" not in init:
             raise InputError(f"prepare: {path!r} is not a suspension run (no initial/radii)")
-        h0 = f["initial/h0"][()]
-        radii = f["initial/radii"][()]
+        h0, radii = init["h0"], init["radii"]
         if which == "initial":
-            return f["initial/s"][()], h0, 0.0, radii, 0
-        if "checkpoint" not in f:
+            return init["s"], h0, 0.0, radii, 0
+        if not run.has_checkpoint:
             raise InputError(f"prepare: {path!r} has no checkpoint (use --from initial)")
-        ck = f["checkpoint"]
-        return ck["s"][()], h0, float(ck.attrs["gamma"]), radii, int(ck.attrs["step"])
+        ck = run.checkpoint()
+        return ck["s"], h0, float(ck["gamma"]), radii, int(ck["step"])
 
 
 def main(argv=None) -> int:

@@ -24,14 +24,14 @@ import tomllib
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
-import h5py
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.cm import ScalarMappable
 from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 
-from ..io import FORMAT
+from ..io import RunFile
+from ..errors import InputError
 
 
 class RunFileError(Exception):
@@ -43,8 +43,7 @@ class Skip(Exception):
 
 
 # ---------------------------------------------------------------------------------------
-# Reading.  A second reader of the run file, kept here for now: it is to be folded into
-# parflow.io (one reader of the format), which is why it is one function.
+# Reading (through io.RunFile, the one reader of the format)
 # ---------------------------------------------------------------------------------------
 @dataclass
 class Run:
@@ -63,55 +62,27 @@ class Run:
 
 
 def load_run(path: str) -> Run:
-    """Read a parflow run file.  Raises :class:`RunFileError` with a one-line message.
+    """Read a parflow run file (``io.RunFile``) into a :class:`Run`.  Raises
+    :class:`RunFileError` with a one-line message.
 
     The timeseries are cut to their common length; each analysis instant gets the
     ``direction``, ``leg`` and ``row`` of its timeseries row."""
-    def text(v):
-        return v.decode() if isinstance(v, bytes) else v
-
-    def scalar(v):
-        v = text(v)
-        return v.item() if isinstance(v, np.generic) else v
-
     if not os.path.exists(path):
         raise RunFileError(f"{path}: no such file")
     if os.path.isdir(path):
         raise RunFileError(f"{path}: is a directory, not a parflow run file")
     try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise RunFileError(f"{path}: not a parflow run file (not an HDF5 file)") from None
-    with f:
-        if text(f.attrs.get("format")) != FORMAT:
-            raise RunFileError(f"{path}: not a parflow run file (format attribute is not "
-                               f"{FORMAT!r})")
-        attrs = {k: scalar(v) for k, v in f.attrs.items()}
+        rf = RunFile(path)
+    except InputError as exc:
+        raise RunFileError(f"{path}: not a parflow run file ({exc})") from None
+    with rf:
+        attrs = rf.attrs
         try:
-            scene = tomllib.loads(str(attrs.get("scene", "")))
+            scene = tomllib.loads(rf.scene_text)
         except tomllib.TOMLDecodeError:
             scene = {}
-        model = str(attrs.get("model") or scene.get("model", {}).get("name", ""))
-        model_attrs = {k: scalar(v) for k, v in f["model"].attrs.items()} if "model" in f else {}
-        ts = {}
-        if "timeseries" in f:
-            for k, d in f["timeseries"].items():
-                if isinstance(d, h5py.Dataset) and d.ndim == 1:
-                    ts[k] = d[()]
-        n = min((len(v) for v in ts.values()), default=0)
-        ts = {k: v[:n] for k, v in ts.items()}
-        analysis = []
-        if "analysis" in f:
-            for key in sorted(f["analysis"]):
-                g = f["analysis"][key]
-                if not isinstance(g, h5py.Group):
-                    continue
-                a = {k: scalar(v) for k, v in g.attrs.items()}
-                a.setdefault("step", int(key) if key.isdigit() else -1)
-                for k, d in g.items():
-                    if isinstance(d, h5py.Dataset):
-                        a[k] = d[()]
-                analysis.append(a)
+        model = rf.model or str(scene.get("model", {}).get("name", ""))
+        model_attrs, ts, analysis = rf.model_attrs, rf.timeseries(), rf.analyses()
     if "step" in ts and len(ts["step"]):          # tag each instant with its row
         steps = ts["step"]
         for a in analysis:
