@@ -26,7 +26,7 @@ from ..algebra.spectrum import lowest_omega, on_force_factor
 from ..state import InputError, Instant, State
 from .bonded import BondedSystem, resolve_reuse
 from .hard_discs import ShearJammed, Suspension
-from .heun import Heun, Jammed, StepControl
+from .heun import INTEGRATORS, Jammed, StepControl
 
 
 class BondedEngine:
@@ -43,7 +43,7 @@ class BondedEngine:
                               model.FACTOR_REUSE)
         self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
         err_prev = None if ck is None else ck.get("err_prev")
-        self.integ = Heun(self.system, self.control,
+        self.integ = INTEGRATORS[self.control.method](self.system, self.control,
                           err_prev=float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None

@@ -35,6 +35,7 @@ from ..schema import POSITIVE, key
 from ..state import InputError
 
 CONTROLLERS = ("I", "PI")
+INTEGRATORS: dict = {}      # filled at the end of the module
 
 
 class Jammed(RuntimeError):
@@ -53,6 +54,8 @@ class StepControl:
     length_tol: float = key(1e-12, *POSITIVE, "rod-length projection tolerance")
     controller: str = key("I", lambda v: v in CONTROLLERS, f"one of {list(CONTROLLERS)}",
                           "step-size control: I (dg ~ tol/err) or PI")
+    method: str = key("heun", lambda v: v in INTEGRATORS, "a registered integrator (INTEGRATORS)",
+                      "the bonded integrator: heun (the only one built in)")
 
     def validate(self):
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",
@@ -145,3 +148,10 @@ class Heun:
             grow = self.growth(err, rejected)
             self.err_prev = err
             return StepResult(s_new, gamma + h, F, h, dg * grow, err, rejected, it, lerr)
+
+
+# The bonded integrators by name (``[integrator] method``).  An integrator is a class built as
+# ``cls(system, control, err_prev=None)`` with ``step(s, gamma, F0, direction, dg, dg_cap)
+# -> StepResult`` and an ``err_prev`` attribute (checkpointed; None if it keeps no memory):
+# docs/architecture.md, "How to add an integrator".
+INTEGRATORS["heun"] = Heun

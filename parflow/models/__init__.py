@@ -1,21 +1,40 @@
-"""Model builders.  Each model module provides PARAMS (schema of its [model] table),
-FLOW, build(params, seed) -> State, observables(state, F) -> dict and
-analyses(system, state, F) -> dict(arrays=..., scalars=...).  A model with
-ENGINE = "contacts" (suspension) is stepped by engines.ContactEngine instead and provides
-the hooks that engine calls (controls, restore_dict, analyses(comm, state, F, scene, dir))."""
+"""The models: one module each under ``parflow/models/``, keeping the contract of
+``models/base.py`` (NAME, ENGINE, FLOW, PARAMS, FACTOR_REUSE, build, observables,
+analyses(at), omega_min).  ``MODELS`` names them; ``get_model`` returns the module; a model
+defined elsewhere (a user's module, a test) joins with ``register_model``.  Below: what a run
+of each model needs in memory (``check_memory``: the scene check before anything is built)."""
 import os
 from importlib import import_module
 
 from ..algebra.solvers import PARALLEL_FACTORS, resolve_parallel
 from ..state import InputError
+from .base import check_contract
 
-MODELS = ("chain", "network", "suspension")
+MODELS = ["chain", "network", "suspension"]
+_REGISTERED = {}                    # name -> module, for models registered at run time
 
 
 def get_model(name: str):
     if name not in MODELS:
         raise InputError(f"model.name must be one of {list(MODELS)}, got {name!r}")
+    if name in _REGISTERED:
+        return _REGISTERED[name]
     return import_module(f".{name}", __name__)
+
+
+def register_model(module) -> None:
+    """Make the model ``module`` (any module or object keeping models/base.py's contract)
+    available to scenes as ``model.name = module.NAME``."""
+    check_contract(module)
+    _REGISTERED[module.NAME] = module
+    if module.NAME not in MODELS:
+        MODELS.append(module.NAME)
+
+
+def unregister_model(name: str) -> None:
+    """Undo :func:`register_model` (the built-in models stay)."""
+    if _REGISTERED.pop(name, None) is not None:
+        MODELS.remove(name)
 
 
 # --------------------------------------------------------------------------- memory

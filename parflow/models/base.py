@@ -34,17 +34,17 @@ def check_contract(module) -> None:
     """TypeError naming what a model module lacks or gets wrong."""
     missing = [k for k in REQUIRED if not hasattr(module, k)]
     if missing:
-        raise TypeError(f"model {module.__name__} lacks {', '.join(missing)}")
+        raise TypeError(f"model {getattr(module, '__name__', module)} lacks {', '.join(missing)}")
     if module.ENGINE not in ENGINES:
-        raise TypeError(f"model {module.__name__}: ENGINE = {module.ENGINE!r}, not one of {ENGINES}")
+        raise TypeError(f"model {getattr(module, '__name__', getattr(module, 'NAME', '?'))}: ENGINE = {module.ENGINE!r}, not one of {ENGINES}")
     if module.FLOW not in FLOWS:
-        raise TypeError(f"model {module.__name__}: FLOW = {module.FLOW!r}, not one of {FLOWS}")
+        raise TypeError(f"model {getattr(module, '__name__', getattr(module, 'NAME', '?'))}: FLOW = {module.FLOW!r}, not one of {FLOWS}")
     for k in ("build", "observables", "analyses"):
         if not callable(getattr(module, k)):
-            raise TypeError(f"model {module.__name__}: {k} is not callable")
+            raise TypeError(f"model {getattr(module, '__name__', getattr(module, 'NAME', '?'))}: {k} is not callable")
     if module.omega_min is not None and not callable(module.omega_min):
-        raise TypeError(f"model {module.__name__}: omega_min must be None or callable")
+        raise TypeError(f"model {getattr(module, '__name__', getattr(module, 'NAME', '?'))}: omega_min must be None or callable")
     for key, spec in module.PARAMS.items():
         if not (isinstance(spec, tuple) and len(spec) == 4 and isinstance(spec[3], str)):
-            raise TypeError(f"model {module.__name__}: PARAMS[{key!r}] is not "
+            raise TypeError(f"model {getattr(module, '__name__', getattr(module, 'NAME', '?'))}: PARAMS[{key!r}] is not "
                             f"(type, default, check, description)")
