@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from parflow import io
+from parflow.io import writer as io_writer
 from parflow.io import RunWriter, load_group, read_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -104,12 +105,12 @@ def test_reservation_bounds_what_a_batch_adds(tmp_path, monkeypatch):
     is a clean error before any write): the estimate bounds what the file really grows."""
     w = RunWriter(str(tmp_path / "r.h5"), shadow=False)
     sizes = []
-    real = io._allocate
+    real = io_writer._allocate
 
     def allocate(path, need, new=False):
         sizes.append((os.path.getsize(path), need))
         real(path, need, new)
-    monkeypatch.setattr(io, "_allocate", allocate)
+    monkeypatch.setattr(io_writer, "_allocate", allocate)
     grown = []
     for _ in feed(w, 5, n=20000):
         grown.append(os.path.getsize(w.path) - sizes[-1][0])

@@ -1,20 +1,5 @@
-"""HDF5 output: one file per run, written by rank 0 (layout: docs/output.md).
-
-The file named FILE is always a complete, closed HDF5 file: a flush appends what is pending
-to a twin of it, ``FILE.tmp``, and renames the twin over FILE (atomic on POSIX); the old FILE
-then becomes the next twin (``RunWriter``; guarantees and measurements: docs/output.md
-"Faults").  A run killed at any moment therefore leaves FILE as of its last flush.
-
-Layout:
-    /            attrs: format, parflow_version, scene (TOML text), petsc_options, versions,
-                        n_ranks, git_commit, created, status, message
-    /initial     s, h0, E, bonds/{i, j, shift, l0}: the initial state
-    /model       attrs: model constants (e.g. gamma_c of a chain)
-    /timeseries  one resizable 1-D dataset per quantity, one row per accepted step
-    /analysis/NNNNNNNN   arrays and attrs (step, gamma, scalars) at chosen instants
-    /snapshots/NNNNNNNN  s, V_na, tau at chosen steps
-    /checkpoint  the state needed by --restart (replaced at each checkpoint)
-"""
+"""Writing run files: the RunWriter (a flush costs what it appends; docs/output.md "Faults"), the
+one whole-or-nothing HDF5 writer (atomic_h5), and write failures raised on every rank."""
 from __future__ import annotations
 
 import errno
@@ -28,12 +13,9 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 
-from .schema import POSITIVE
-from .schema import key as _key
-
-from .state import InputError, State
-
-FORMAT = "parflow-run-1"
+from ..schema import POSITIVE
+from ..schema import key as _key
+from .reader import FORMAT
 
 
 @dataclass
@@ -44,56 +26,6 @@ class OutputOptions:
     checkpoint_every: int = _key(500, *POSITIVE, "steps between checkpoints")
     checkpoint_minutes: float = _key(5.0, *POSITIVE, "minutes between checkpoints")
     progress_seconds: float = _key(2.0, *POSITIVE, "seconds between progress lines")
-
-
-def check_output_path(path: str, overwrite: bool, flag: str = "--output") -> None:
-    """Fail early (before any work) if the output cannot be written: the name, an existing
-    file without ``overwrite``, and the folder (created if missing, like ``mkdir -p``; a
-    probe file, as long a name as the temporary files the writers use, is created and
-    removed in it, so that a folder where files cannot be created -- /proc, a read-only
-    mount -- is refused now rather than at the first write)."""
-    if not isinstance(path, str) or not path.strip():
-        raise InputError(f"the output path is empty: give a file name ({flag})")
-    if "\x00" in path:
-        raise InputError(f"output path {path!r} contains a NUL character")
-    if path.endswith(("/", os.sep, "/.", "/..")) or os.path.basename(path) in (".", ".."):
-        raise InputError(f"output path {path!r} names a folder, not a file: give a file name "
-                         f"(e.g. {os.path.join(path, 'run.h5')!r})")
-    if os.path.isdir(path):
-        raise InputError(f"output path {path!r} is a directory: give a file name")
-    if os.path.lexists(path):
-        if not overwrite:
-            raise InputError(f"output file {path!r} exists: pass --overwrite to replace it, or "
-                             f"{flag} to choose another file")
-        if os.path.exists(path) and not os.path.isfile(path):
-            raise InputError(f"output path {path!r} exists and is not a regular file: "
-                             f"it is not replaced")
-    folder = os.path.dirname(os.path.abspath(path))
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the output folder {folder!r}: "
-                         f"{exc.strerror or exc}") from None
-    if not os.path.isdir(folder):
-        raise InputError(f"cannot create the output folder {folder!r}: not a directory")
-    probe = os.path.join(folder, f".{os.path.basename(path)}.probe")
-    try:
-        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        fd = None          # a probe left by a killed check: the folder takes files
-    except OSError as exc:
-        if exc.errno == errno.ENAMETOOLONG:
-            raise InputError(f"output file name {os.path.basename(path)[:40]!r}... is too long "
-                             f"({len(os.path.basename(path))} characters): give a shorter "
-                             f"name") from None
-        raise InputError(f"cannot create files in the output folder {folder!r}: "
-                         f"{exc.strerror or exc}") from None
-    if fd is not None:
-        os.close(fd)
-    try:
-        os.remove(probe)
-    except OSError:
-        pass
 
 
 class WriteError(RuntimeError):
@@ -515,185 +447,6 @@ def _write_group(f, name, arrays: dict, attrs: dict):
 def h5_attr(v):
     return v.replace("\x00", "") if isinstance(v, str) else v
 
-
-HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-
-def _hdf5_signature(path: str, size: int) -> bool:
-    """Whether the HDF5 superblock signature is where the format puts it: at byte 0, or
-    after a user block of 512, 1024, 2048, ... bytes."""
-    with open(path, "rb") as fh:
-        offset = 0
-        while offset + len(HDF5_SIGNATURE) <= size:
-            fh.seek(offset)
-            if fh.read(len(HDF5_SIGNATURE)) == HDF5_SIGNATURE:
-                return True
-            offset = 512 if offset == 0 else 2 * offset
-    return False
-
-
-def open_hdf5(path: str) -> h5py.File:
-    """Open an HDF5 file read-only, with a clear error if it is missing, unreadable, not
-    HDF5 at all, or an HDF5 file that is cut short or damaged (a copy that did not finish,
-    a full disk)."""
-    if os.path.isdir(path):
-        raise InputError(f"{path!r} is a directory, not an HDF5 file")
-    if not os.path.isfile(path):
-        raise InputError(f"{path!r} does not exist")
-    try:
-        size = os.path.getsize(path)
-        signed = _hdf5_signature(path, size)
-    except OSError as exc:
-        raise InputError(f"cannot read {path!r}: {exc.strerror or exc}") from None
-    if not signed:
-        raise InputError(f"{path!r} is not an HDF5 file ({size} bytes, no HDF5 signature)")
-    try:
-        return h5py.File(path, "r")
-    except OSError as exc:
-        text = str(exc)
-        m = re.search(r"stored_eof\s*=\s*(\d+)", text)
-        whole = f" of its {int(m.group(1))}" if m else ""
-        why = "truncated" if "truncated" in text else "damaged or truncated"
-        raise InputError(f"{path!r} is a {why} HDF5 file ({size} bytes{whole}): it cannot be "
-                         f"read; restore it from a copy") from None
-
-
-def read_run(path: str) -> h5py.File:
-    """Open a parflow run file read-only, with a clear error if it is not one."""
-    f = open_hdf5(path)
-    fmt = f.attrs.get("format")
-    if isinstance(fmt, bytes):
-        fmt = fmt.decode(errors="replace")
-    if fmt != FORMAT:
-        f.close()
-        why = "format attribute missing" if fmt is None else f"format {fmt!r}, not {FORMAT!r}"
-        raise InputError(f"{path!r} is not a parflow run file ({why})")
-    return f
-
-
-def load_group(g) -> dict:
-    out = {}
-    for k, v in g.items():
-        out[k] = load_group(v) if isinstance(v, h5py.Group) else v[()]
-    return out
-
-
-# =========================================================================== the one reader
-
-def _text(v):
-    return v.decode(errors="replace") if isinstance(v, bytes) else v
-
-
-def _scalar(v):
-    v = _text(v)
-    return v.item() if isinstance(v, np.generic) else v
-
-
-class RunFile:
-    """The one reader of a run file (layout above), opened read-only with the checks of
-    :func:`read_run` (InputError: missing, not HDF5, damaged, not a parflow run file).
-
-    ``with RunFile(path) as run:`` then ``run.attrs``, ``run.model``, ``run.scene_text``,
-    ``run.settings``, ``run.model_attrs``, ``run.timeseries()``, ``run.analyses()``,
-    ``run.snapshot_steps()``, ``run.snapshot(step)``, ``run.initial()``,
-    ``run.initial_state()``, ``run.has_checkpoint``, ``run.checkpoint()``; ``run.h5`` is the
-    open h5py file for what has no method yet."""
-
-    def __init__(self, path: str):
-        self.path = path
-        self.h5 = read_run(path)
-
-    def close(self) -> None:
-        self.h5.close()
-
-    def __enter__(self) -> "RunFile":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    # -- attributes ----------------------------------------------------------------------
-    @property
-    def attrs(self) -> dict:
-        return {k: _scalar(v) for k, v in self.h5.attrs.items()}
-
-    @property
-    def model(self) -> str:
-        return str(_text(self.h5.attrs.get("model", "")))
-
-    @property
-    def scene_text(self) -> str:
-        return str(_text(self.h5.attrs.get("scene", "")))
-
-    @property
-    def settings(self) -> list[str]:
-        """The ``--set`` settings the run was given (and later restarts re-apply)."""
-        return [s for s in str(_text(self.h5.attrs.get("scene_settings", ""))).split("\n") if s]
-
-    @property
-    def model_attrs(self) -> dict:
-        g = self.h5.get("model")
-        return {k: _scalar(v) for k, v in g.attrs.items()} if isinstance(g, h5py.Group) else {}
-
-    # -- data ----------------------------------------------------------------------------
-    def timeseries(self) -> dict:
-        """Every 1-D time-series column, cut to their common length."""
-        ts = {}
-        g = self.h5.get("timeseries")
-        if isinstance(g, h5py.Group):
-            ts = {k: d[()] for k, d in g.items() if isinstance(d, h5py.Dataset) and d.ndim == 1}
-        n = min((len(v) for v in ts.values()), default=0)
-        return {k: v[:n] for k, v in ts.items()}
-
-    def analyses(self) -> list[dict]:
-        """The analysis instants in step order: their attributes and arrays in one dict."""
-        out = []
-        g = self.h5.get("analysis")
-        for key in sorted(g) if isinstance(g, h5py.Group) else ():
-            a_g = g[key]
-            if not isinstance(a_g, h5py.Group):
-                continue
-            a = {k: _scalar(v) for k, v in a_g.attrs.items()}
-            a.setdefault("step", int(key) if key.isdigit() else -1)
-            a.update({k: d[()] for k, d in a_g.items() if isinstance(d, h5py.Dataset)})
-            out.append(a)
-        return out
-
-    def snapshot_steps(self) -> list[int]:
-        g = self.h5.get("snapshots")
-        return sorted(int(k) for k in g if k.isdigit()) if isinstance(g, h5py.Group) else []
-
-    def snapshot(self, step: int) -> dict:
-        """The snapshot at ``step``: its arrays and attributes (KeyError if there is none)."""
-        g = self.h5[f"snapshots/{step:08d}"]
-        out = {k: _scalar(v) for k, v in g.attrs.items()}
-        out.update(load_group(g))
-        return out
-
-    def initial(self) -> dict:
-        return load_group(self.h5["initial"])
-
-    def initial_state(self, gamma: float = 0.0, s=None):
-        """The run's State (/initial: cell, bonds, radii), with positions ``s`` (default: the
-        initial ones) at strain ``gamma``, and /model attributes as its meta."""
-        g = self.initial()
-        if s is not None:
-            g["s"] = s
-        return State.from_groups(g, gamma, self.model_attrs)
-
-    @property
-    def has_checkpoint(self) -> bool:
-        return isinstance(self.h5.get("checkpoint"), h5py.Group)
-
-    def checkpoint(self) -> dict:
-        """The checkpoint's attributes and arrays in one dict."""
-        g = self.h5["checkpoint"]
-        ck = dict(g.attrs)
-        ck.update(load_group(g))
-        return ck
-
-
-# =========================================================================== the one atomic writer
 
 class atomic_h5:
     """``with atomic_h5(path) as f:`` -- an HDF5 file written whole or not at all: written as
