@@ -1,5 +1,5 @@
 """The contact LCP: a fresh factorisation of N_AA for every active set, against one
-factorisation kept and bordered (Schur complement) updates (contacts.ActiveSolver).
+factorisation kept and bordered (Schur complement) updates (dynamics.lcp.ActiveSolver).
 
 Takes a suspension run file with a checkpoint (e.g. out/fig6_suspension_phi0.840.h5), steps
 the suspension on from it for ``--steps`` steps recording every LCP the steps solve, then

@@ -2,7 +2,7 @@
 
 A WLKM-diluted perturbed triangular lattice (z = 3.8, the sparsity of a 2D floppy network),
 N loaded at gamma = 0; SLEPc Krylov-Schur, shift-and-invert at 0 on a Cholesky factor
-(parflow.spectrum.LowSpectrum): by default the force solver's factor of N, as in a run that
+(parflow.algebra.spectrum.LowSpectrum): by default the force solver's factor of N, as in a run that
 tracks omega_min (--own-factor: a factorisation of its own, symbolic analysis included).  Writes docs/benchmarks/spectrum.json (one record per rank
 count and factorisation).
 

@@ -166,7 +166,7 @@ def lcp_section(d):
            "with one strategy, one process.  max_border = 0: a fresh CHOLMOD factorisation of N_AA "
            "for every active set the pivoting visits; otherwise one factorisation is kept and "
            "later active sets within max_border changed contacts are solved by bordering it "
-           "(Schur complement; `contacts.ActiveSolver`).  max |ΔV|/|V|: against the run's own "
+           "(Schur complement; `dynamics.lcp.ActiveSolver`).  max |ΔV|/|V|: against the run's own "
            "solution (V = Sᵀf is unique, f need not be).", "",
            "| max_border | ms per LCP | solves per LCP | factorisations per LCP | bordered solves per LCP | failures | max \\|ΔV\\|/\\|V\\| |",
            "|---|---|---|---|---|---|---|"]
