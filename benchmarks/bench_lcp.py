@@ -40,7 +40,7 @@ def record(path: str, steps: int) -> tuple[list, dict]:
     with read_run(path) as f:
         scene = load_scene(f.attrs["scene"])
     run = Run(scene, PETSc.COMM_SELF, path, restart=True, quiet=True)
-    state, ck = run._load_checkpoint()
+    state, ck = run.load_checkpoint()
     eng = make_engine(PETSc.COMM_SELF, state, scene, run.model, ck)
     sim = eng.sim
     out = []

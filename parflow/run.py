@@ -25,7 +25,7 @@ from . import __version__
 from .checkpoint import read_checkpoint
 from .errors import collective
 from .dynamics.engines import make_engine
-from .dynamics.heun import Jammed, StepControl
+from .dynamics.heun import Jammed
 from .io import RunWriter, WriteError, collective_write
 from .models import get_model
 from .protocol import (Clock, Elapsed, EtaEstimate, Every, Leg, WallEvery, analyses_enabled,
@@ -60,7 +60,6 @@ class Run:
         if max_steps is not None:
             scene["protocol"]["max_steps"] = max_steps
         self.model = get_model(scene["model"]["name"])
-        StepControl(**scene["integrator"]).validate()
         self.obs_cfg = scene["observables"]
         self.cmdline = cmdline_options or set()
 
@@ -69,7 +68,7 @@ class Run:
         # built on rank 0 and broadcast; an InputError there is raised on every rank
         return collective(self.comm, self.model.build, self.scene["model"], self.scene["seed"])
 
-    def _load_checkpoint(self):
+    def load_checkpoint(self):
         """The initial state and the checkpoint of the file being restarted, read and checked
         (``checkpoint.check_checkpoint``) on rank 0 before anything touches the file; a bad
         checkpoint is one InputError on every rank."""
@@ -84,7 +83,7 @@ class Run:
         comm, scene, cfg, out = self.comm, self.scene, self.obs_cfg, self.scene["output"]
         t_start = time.monotonic()
         writer = RunWriter(self.path, out["flush_seconds"]) if self.rank == 0 else None
-        state, ck = self._load_checkpoint() if self.restart else (self._build_state(), None)
+        state, ck = self.load_checkpoint() if self.restart else (self._build_state(), None)
         eng = make_engine(comm, state, scene, self.model, ck)
         self._engine = eng
         state = eng.state

@@ -106,7 +106,7 @@ def compute(comm, state: State, method: str, k: int = 6, interval=(0.0, None),
             parallel: str = "auto", vectors: bool = False) -> dict:
     """The spectrum of the state's N (collective).  Returns dict(omega, [modes], info...)."""
     # (after cli.init_petsc: see the module docstring)
-    from .algebra.spectrum import LowSpectrum, omega_from_lambda
+    from .algebra.spectrum import omega_from_lambda, on_force_factor
     from .dynamics.bonded import BondedSystem
     nc = len(state.bonds)
     t0 = time.perf_counter()
@@ -122,7 +122,7 @@ def compute(comm, state: State, method: str, k: int = 6, interval=(0.0, None),
         if method == "low":
             if not 1 <= k < nc:
                 raise InputError(f"--k must be in [1, Nc) = [1, {nc}), got {k}")
-            spec = LowSpectrum(system.ops.N, k=k, parallel=system.parallel, ksp=system.tau_solver.ksp)
+            spec = on_force_factor(system, k)
             try:
                 lam, vecs = spec.solve(vectors=vectors)
                 modes = None

@@ -362,7 +362,7 @@ def pair_r2(mi, s, iu, ju):
     """Squared minimum-image distances of pairs (the reduced-rint formula; below r_max it is
     the true minimum image, see test_velocity_correlation_against_brute_force)."""
     sr = mi.reduced(s)
-    return corr._min_image_r2(mi.hr, [sr[ju, c] - sr[iu, c] for c in range(s.shape[1])])
+    return corr.min_image_r2(mi.hr, [sr[ju, c] - sr[iu, c] for c in range(s.shape[1])])
 
 
 @pytest.mark.parametrize("scheme", ["ngp", "cic"])
@@ -397,7 +397,7 @@ def test_fft_correlation_is_the_grid_sum(scheme):
                    for cj, wj in zip(corners, wts)]
     for gi, gj, wi, wj in options:
         off = (gj[ju] - gi[iu]) / M                      # reduced grid offset of the pair
-        r2 = corr._min_image_r2(mi.hr, [off[:, 0], off[:, 1]])
+        r2 = corr.min_image_r2(mi.hr, [off[:, 0], off[:, 1]])
         k = (np.sqrt(r2) / dr).astype(int)
         ok = k < nbins
         w = (wi[iu] * wj[ju])[ok]
@@ -495,7 +495,7 @@ def test_fft_correlation_plane_wave():
     ph = (g / M) @ mi.hr.T @ k
     V = np.column_stack([np.cos(ph), np.sin(ph)])
     D = g[1:] / M                                        # the offsets D != 0
-    r2 = corr._min_image_r2(mi.hr, [D[:, 0].copy(), D[:, 1].copy()])
+    r2 = corr.min_image_r2(mi.hr, [D[:, 0].copy(), D[:, 1].copy()])
     rD = (D - np.rint(D)) @ mi.hr.T
     nbins = int(mi.rmax / dr)
     kb = (np.sqrt(r2) / dr).astype(int)

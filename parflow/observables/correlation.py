@@ -27,7 +27,7 @@ CORR_GRID_MAX = 2 ** 24    # points of the FFT grid of C(r), about at most (134 
 EMPTY_BIN = 1e-6           # C(r) is NaN in bins holding fewer pairs (CIC counts are fractional)
 
 
-def _min_image_r2(hr: np.ndarray, dsr: list) -> np.ndarray:
+def min_image_r2(hr: np.ndarray, dsr: list) -> np.ndarray:
     """|h_r (ds - rint(ds))|^2 from the reduced displacements ds (one array per direction,
     modified in place).  The one formula for pair distances of C(r): the exact and the FFT
     method bin a pair identically."""
@@ -75,7 +75,7 @@ def velocity_correlation(s: np.ndarray, h: np.ndarray, V: np.ndarray, dr: float,
         cols = slice(a + 1, n)
         if a + 1 >= n:
             break
-        r2 = _min_image_r2(mi.hr, [srT[c][cols][None, :] - srT[c][a:b, None] for c in range(d)])
+        r2 = min_image_r2(mi.hr, [srT[c][cols][None, :] - srT[c][a:b, None] for c in range(d)])
         dots = _dots(VT, (slice(a, b), None), (None, cols))
         # keep j > i only: in the block, column k (j = a + 1 + k) with row q (i = a + q)
         jj = np.arange(a + 1, n)[None, :]
@@ -206,7 +206,7 @@ def _near_sums(mi: MinImage, sr: np.ndarray, VT: np.ndarray, nbins_exact: int, d
     for ij in found:
         for a in range(0, len(ij), chunk):
             i, j = ij[a:a + chunk, 0], ij[a:a + chunk, 1]
-            r2 = _min_image_r2(mi.hr, [srT[c][j] - srT[c][i] for c in range(d)])
+            r2 = min_image_r2(mi.hr, [srT[c][j] - srT[c][i] for c in range(d)])
             k = (np.sqrt(r2) / dr).astype(np.int64)
             keep = (k < nbins_exact) & (i != j)
             i, j, k = i[keep], j[keep], k[keep]
@@ -283,7 +283,7 @@ def velocity_correlation_fft(s: np.ndarray, h: np.ndarray, V: np.ndarray, dr: fl
     step = max(1, slab // max(1, int(np.prod([len(i) for i in idx[1:]]))))
     for a in range(0, len(idx[0]), step):      # slabs of offsets along the first direction
         sub = np.ix_(*([idx[0][a:a + step]] + idx[1:]))
-        r2 = _min_image_r2(mi.hr, [sub[k] / M[k] for k in range(d)])
+        r2 = min_image_r2(mi.hr, [sub[k] / M[k] for k in range(d)])
         kb = (np.sqrt(r2) / dr).astype(np.int64)
         keep = kb < nbins
         kk = kb[keep]
