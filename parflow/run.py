@@ -250,6 +250,10 @@ class Run:
             except Jammed as exc:
                 status, message = "jammed", str(exc)
                 log.info("stopping: %s", message)
+                cert = getattr(exc, "certificate", None)
+                if writer and cert:      # the proof of jamming (contact LCP): /jam
+                    writer.add_group("jam", getattr(exc, "arrays", {}),
+                                     dict(cert, step=clock.step))
                 eng.on_jammed()
                 analyse(obs)
             except BaseException as exc:

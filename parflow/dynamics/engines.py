@@ -230,7 +230,12 @@ class ContactEngine:
         try:
             self.stats = sim.step(direction, cap)
         except ShearJammed as exc:
-            raise Jammed(str(exc)) from None
+            # the proof travels with it: run.py writes it to the run file's /jam group
+            jam = Jammed(str(exc))
+            jam.certificate = dict(exc.certificate)
+            jam.arrays = (dict(tau=exc.tau, contact_i=exc.pairs[0], contact_j=exc.pairs[1])
+                          if exc.tau is not None else {})
+            raise jam from None
         st = sim.state
         self.F = ContactForce(st.gamma, st.h, sim.last_c, sim.last_f, sim.last_V, self.stats.sigma,
                               sim.omega, direction, self.stats.gap_work)

@@ -16,7 +16,9 @@ A "catching-up" scheme (Maury & Venel; Lerner, Düring & Wyart 2013), for a stra
 
 Step size: min(dg_max, c/sigma, dmax/max|V|, MAX_GROWTH x the last step, the leg's cap);
 an infeasible LCP divides it by 10, an oversized displacement by 2; below dg_min with an
-infeasible LCP the suspension is declared shear-jammed (:class:`ShearJammed`).
+infeasible LCP the suspension is declared shear-jammed (:class:`ShearJammed`) only if a
+compressed self-stress proves it (``dynamics.jamming``), else the step is a solver failure
+(:class:`~parflow.dynamics.lcp.ContactSolveError`).
 
 Signs: f > 0 is compression; sigma = |V_na|^2 / Omega; with collisions in the step
 |V_na|^2 = -<f|b> - <f|h>/dg exactly (complementarity), so sigma = sigma_fb + gap_work
@@ -36,7 +38,8 @@ from ..errors import InputError
 from ..geometry import Candidates, cell_at, find_candidates, rigidity_csr, velocity_gradient
 from ..observables import stress
 from ..state import State
-from .lcp import FACTORS, LCPFailure, LCPInfo, solve_lcp
+from .jamming import compressed_self_stress
+from .lcp import FACTORS, FLOOR_FACTOR, ContactSolveError, LCPFailure, LCPInfo, solve_lcp
 
 DEFAULT_SKIN = 0.3
 FIRST_DGAMMA = 1e-4
@@ -71,7 +74,16 @@ class StepStats:
 
 
 class ShearJammed(RuntimeError):
-    """The contact LCP is infeasible at every allowed step size: finite-size shear jamming."""
+    """The contact LCP is infeasible at every allowed step size, *proved* by a compressed
+    self-stress (``dynamics.jamming``): finite-size shear jamming.  ``certificate``: the
+    record of the proof (support, tau.b, tau.q, strain budget, gamma, the steps tried)."""
+
+    def __init__(self, message: str, certificate: dict | None = None,
+                 tau: np.ndarray | None = None, pairs: tuple | None = None):
+        super().__init__(message)
+        self.certificate = certificate or {}
+        self.tau = tau                  # tau on its support
+        self.pairs = pairs              # (i, j) of the support's contacts
 
 
 class Suspension:
@@ -175,37 +187,43 @@ class Suspension:
         self.max_overlap = max(self.max_overlap, overlap)
         dg = self.next_dgamma(cap)
         sig_max = 2.0 * float(st.radii.max())
-        n_fb = 0
+        tried, why = [], ""
         while True:
             try:
                 S, q, f, V, info, warm = self.forces(c, dg, direction)
-                n_fb = int(np.count_nonzero(f > 0))
                 # an infeasible LCP (a self-stress tau >= 0 with tau . q < 0: a cluster the
                 # flow compresses) leaves w < 0 on the regularised active set: overlap
                 # dg |w| would grow this step.  Smaller steps give the reopened gaps more
                 # weight (h/dg); when no step size helps, the suspension is shear-jammed.
+                # accepted on what matters: the overlap the step can create (dg |w|), and w
+                # and complementarity to the LCP's accuracy -- 1e-8 max(1, |b|), or the
+                # round-off floor eps ||N|| max f when f is large (near singular sets, where
+                # an absolute test rejected solvable steps: false jams at phi = 0.84)
                 bad = max(0.0, -info.min_w)
-                feasible = (bad <= 1e-8 * max(1.0, float(np.abs(c.b).max()))
-                            and dg * bad <= self.overlap_tol)
-            except LCPFailure:
-                feasible, vmax = False, math.inf
+                w_tol = max(1e-8 * max(1.0, float(np.abs(c.b).max())), FLOOR_FACTOR * info.floor)
+                feasible = (bad <= w_tol and dg * bad <= self.overlap_tol
+                            and info.comp <= w_tol * max(1.0, float(f.max(initial=0.0))))
+                if not feasible:
+                    why = (f"min w = {info.min_w:.3g}, overlap dg |w| = {dg * bad:.3g} "
+                           f"at dg = {dg:.3g}")
+            except LCPFailure as exc:
+                feasible, vmax, why = False, math.inf, f"{exc} at dg = {dg:.3g}"
             if feasible:
                 vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
                 if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
                     break
             else:
                 self.infeasible_reductions += 1
+            tried.append(dg)
             dg *= 0.5 if feasible else 0.1
+            if dg < self.dg_min and not feasible and tried[-1] > self.dg_min:
+                dg = self.dg_min            # the smallest step is tried before giving up
             if dg < self.dg_min:
                 if not feasible:
-                    raise ShearJammed(
-                        f"suspension: shear-jammed at gamma = {st.gamma:.8g}: the contact "
-                        f"problem has no solution without overlap for any step >= "
-                        f"{self.dg_min:g} (a state of self-stress among "
-                        f"{n_fb} force-bearing "
-                        f"contacts that the flow compresses); stress is infinite at this N")
-                raise RuntimeError(f"suspension: step size fell below {self.dg_min:g} "
-                                   f"(max |V_na| = {vmax:.3g})")
+                    self._jammed_or_failed(c, direction, tried, why)
+                raise ContactSolveError(
+                    f"suspension: step size fell below dg_min = {self.dg_min:g} at gamma = "
+                    f"{st.gamma:.10g} (max |V_na| = {vmax:.3g}: the displacement bounds)")
         t2 = time.perf_counter()
         h_new = cell_at(st.h0, st.E, st.gamma + direction * dg)
         st.s = st.s + dg * V @ np.linalg.inv(h_new).T
@@ -228,6 +246,34 @@ class Suspension:
         self.steps += 1
         self.last_f, self.last_c, self.last_V = f, c, V
         return stats
+
+    def _jammed_or_failed(self, c: Candidates, direction: int, tried: list, why: str):
+        """No step >= dg_min was accepted: raise :class:`ShearJammed` if a compressed
+        self-stress proves the LCP infeasible at the smallest step tried, else
+        :class:`ContactSolveError` (the LCP solver failed on a problem that has a solution,
+        or one this test cannot decide)."""
+        st = self.state
+        dg = tried[-1]
+        S = rigidity_csr(c.n, c.i, c.j, st.n)
+        v_adm = math.sqrt(st.n) * min(2 * self.dmax, 0.5 * self.skin) / dg
+        cert = compressed_self_stress(S, direction * c.b, c.gap, dg, v_adm)
+        rec = cert.record()
+        rec.update(gamma=float(st.gamma), direction=int(direction), dg_min=float(self.dg_min),
+                   dg_tried=np.array(tried, float), n_candidates=len(c))
+        if not cert.certified:
+            raise ContactSolveError(
+                f"suspension: the contact LCP failed at gamma = {st.gamma:.10g} for every step "
+                f"from {tried[0]:.3g} down to {dg:.3g} (last: {why}), but it is not proved "
+                f"infeasible (no compressed self-stress: LP min tau.q = {cert.tau_q:.3g}, "
+                f"v_bound = {cert.v_bound:.3g} < {v_adm:.3g}; {cert.lp_status}): a solver "
+                f"failure, not shear jamming")
+        P = np.flatnonzero(cert.tau > 0)
+        raise ShearJammed(
+            f"suspension: shear-jammed at gamma = {st.gamma:.10g}: no step >= "
+            f"{self.dg_min:g} without overlap, proved by a compressed self-stress on "
+            f"{cert.support} contacts (tau.b = {cert.tau_b:.4g}, tau.q = {cert.tau_q:.4g} at "
+            f"dg = {dg:.3g}, strain budget {cert.strain_budget:.3g}); stress is infinite at "
+            f"this N", certificate=rec, tau=cert.tau[P], pairs=(c.i[P], c.j[P]))
 
     def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
         """Step forward until ``strain`` more strain has been applied (the last step capped

@@ -1,0 +1,116 @@
+"""Certificates of shear jamming for the contact LCP (DESIGN §5).
+
+The contact LCP  w = S S^T f + q >= 0,  f >= 0,  f . w = 0  (N = S S^T positive semidefinite)
+has a solution iff it is feasible, and by Farkas' lemma it is infeasible iff there is a
+*compressed self-stress*
+
+    tau >= 0,   S^T tau = 0,   tau . q < 0
+
+(tau >= 0 with N tau <= 0 forces |S^T tau|^2 = tau . N tau <= 0).  With q = b + h/dg:
+tau . q = tau . b + tau . h / dg: the tau-weighted gap of the stressed contacts changes at
+the affine rate tau . b whatever the particles do (tau . S V = 0 for every V), so it closes
+after the strain ``strain_budget`` = tau . h / (-tau . b); a step larger than that is
+impossible without overlap.
+
+:func:`compressed_self_stress` finds the most compressed tau by a linear program (HiGHS:
+min tau . q s.t. S^T tau = 0, 0 <= tau <= 1), polishes it onto the null space of its
+support's S^T (least squares) and states what it proves.  A tau with a residual
+r = S^T tau != 0 proves less than infeasibility: for any f >= 0 with w >= 0,
+0 <= tau . w = r . V + tau . q, so |V|_2 >= |tau . q| / |r|_2 =: ``v_bound`` -- no solution
+with a non-affine velocity below v_bound.  The certificate *holds* when tau . q < 0 and
+v_bound exceeds ``v_admissible``, the largest |V|_2 a step could use (the suspension step
+passes sqrt(N) min(2 dmax, skin/2)/dg: a faster particle would fail the step's displacement
+bounds anyway).
+
+Replicated: every rank solves the same LP (HiGHS is deterministic), no communication.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import linprog
+from scipy.sparse.linalg import lsqr
+
+# tau components below this (relative to max tau = 1) are dropped from the support
+SUPPORT_CUT = 1e-9
+
+
+@dataclass
+class Certificate:
+    certified: bool          # tau . q < 0 and v_bound >= v_admissible
+    tau: np.ndarray          # (n_candidates,) >= 0, max 1 (zeros if the LP found none)
+    support: int             # contacts with tau > SUPPORT_CUT
+    tau_b: float             # tau . b (b of the flow direction)
+    tau_h: float             # tau . gap
+    tau_q: float             # tau . q = tau . b + tau . h / dg
+    residual: float          # |S^T tau|_2 after polishing
+    v_bound: float           # no LCP solution with |V|_2 < v_bound (inf: exact self-stress)
+    v_admissible: float      # the |V|_2 a step could use at this dg
+    dg: float                # the step the LP was solved for
+    lp_status: str           # HiGHS's message
+
+    @property
+    def strain_budget(self) -> float:
+        """Strain at which the stressed cluster's weighted gap closes (tau . h / -tau . b);
+        the certificate holds at steps larger than this (inf: the flow does not compress it)."""
+        return self.tau_h / -self.tau_b if self.tau_b < 0 else np.inf
+
+    def record(self) -> dict:
+        """Scalars for the run file's /jam group (docs/output.md)."""
+        return dict(certified=bool(self.certified), support=int(self.support),
+                    tau_b=float(self.tau_b), tau_h=float(self.tau_h), tau_q=float(self.tau_q),
+                    residual=float(self.residual), v_bound=float(self.v_bound),
+                    v_admissible=float(self.v_admissible), dg=float(self.dg),
+                    strain_budget=float(self.strain_budget), lp_status=self.lp_status)
+
+
+def _polish(S: sp.csr_matrix, tau: np.ndarray, sweeps: int = 3) -> np.ndarray:
+    """tau moved onto the null space of S_P^T on its support P (minimum-norm least-squares
+    correction; components that turn negative are cut and the correction redone)."""
+    tau = tau.copy()
+    for _ in range(sweeps):
+        P = np.flatnonzero(tau > SUPPORT_CUT * max(tau.max(), 1e-300))
+        if P.size == 0:
+            return np.zeros_like(tau)
+        StP = S[P].T.tocsr()
+        r = StP @ tau[P]
+        if not np.linalg.norm(r) > 0:
+            break
+        delta = lsqr(StP, r, atol=1e-16, btol=1e-16, conlim=1e14, iter_lim=20 * P.size)[0]
+        t = np.zeros_like(tau)
+        t[P] = np.maximum(tau[P] - delta, 0.0)
+        tau = t
+    return tau
+
+
+def compressed_self_stress(S: sp.csr_matrix, b: np.ndarray, gap: np.ndarray, dg: float,
+                           v_admissible: float) -> Certificate:
+    """The most compressed self-stress of the candidates at step ``dg`` (q = b + gap/dg;
+    ``b`` of the flow direction, i.e. direction * b_C) by the LP min tau . q, S^T tau = 0,
+    0 <= tau <= 1, polished and judged as the module docstring says."""
+    nc = S.shape[0]
+    q = b + gap / dg
+    empty = Certificate(False, np.zeros(nc), 0, 0.0, 0.0, 0.0, 0.0, 0.0, v_admissible, dg, "")
+    if nc == 0:
+        empty.lp_status = "no candidates"
+        return empty
+    qs = float(np.abs(q).max()) or 1.0               # scaled objective: HiGHS tolerances
+    res = linprog(q / qs, A_eq=S.T.tocsr(), b_eq=np.zeros(S.shape[1]), bounds=(0.0, 1.0),
+                  method="highs", options=dict(primal_feasibility_tolerance=1e-10,
+                                               dual_feasibility_tolerance=1e-10))
+    empty.lp_status = str(res.message)
+    if res.status != 0 or res.x is None or not res.fun < 0:
+        return empty
+    tau = _polish(S, np.clip(res.x, 0.0, 1.0))
+    if not tau.max() > 0:
+        return empty
+    tau /= tau.max()
+    tq = float(tau @ q)
+    resid = float(np.linalg.norm(S.T @ tau))
+    v_bound = np.inf if resid == 0 else (-tq / resid if tq < 0 else 0.0)
+    return Certificate(bool(tq < 0 and v_bound >= v_admissible), tau,
+                       int(np.count_nonzero(tau > SUPPORT_CUT)), float(tau @ b),
+                       float(tau @ gap), tq, resid, float(v_bound), float(v_admissible), dg,
+                       str(res.message))
