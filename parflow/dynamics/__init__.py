@@ -4,3 +4,5 @@
 * :mod:`.heun`    -- StepControl and the Heun integrator with projection on the rod lengths
 * :mod:`.engines` -- the engines the run loop drives (bonded models, hard-disc contacts)
 """
+
+from . import rkc  # noqa: F401,E402  (registers the "rkc" integrator in heun.INTEGRATORS)

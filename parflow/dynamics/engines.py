@@ -45,6 +45,8 @@ class BondedEngine:
         err_prev = None if ck is None else ck.get("err_prev")
         self.integ = INTEGRATORS[self.control.method](self.system, self.control,
                           err_prev=float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None)
+        if ck is not None:
+            self.integ.recall(ck)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
         # the engine owns the evolving state: state.s and state.gamma are always current
@@ -132,8 +134,9 @@ class BondedEngine:
 
     def checkpoint(self) -> tuple[dict, dict]:
         ep = self.integ.err_prev
-        return dict(s=self.s, tau=self.F.tau), dict(gamma=self.gamma, dgamma=self.dg,
-                                                    err_prev=float("nan") if ep is None else ep)
+        arrays, attrs = self.integ.memory()          # the integrator's own (RKC: its rho)
+        return dict(s=self.s, tau=self.F.tau, **arrays), dict(
+            gamma=self.gamma, dgamma=self.dg, err_prev=float("nan") if ep is None else ep, **attrs)
 
     def on_jammed(self) -> None:
         self.system.load(self.F.n)      # the factor loaded last belongs to a rejected trial step

@@ -92,6 +92,14 @@ class Heun:
         self.c = control
         self.err_prev = err_prev     # error of the last accepted step (PI control; checkpointed)
 
+    def memory(self) -> tuple[dict, dict]:
+        """What a checkpoint must keep beyond err_prev for a restart to step exactly as the
+        uninterrupted run (arrays, attributes); Heun keeps nothing more."""
+        return {}, {}
+
+    def recall(self, ck: dict) -> None:
+        """Restore :meth:`memory` from a checkpoint."""
+
     def growth(self, err: float, rejected: int) -> float:
         """Factor for the next step after an accepted one with error ``err``."""
         c = self.c
