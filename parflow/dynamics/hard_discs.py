@@ -198,7 +198,10 @@ class Suspension:
                 # accepted on what matters: the overlap the step can create (dg |w|), and w
                 # and complementarity to the LCP's accuracy -- 1e-8 max(1, |b|), or the
                 # round-off floor eps ||N|| max f when f is large (near singular sets, where
-                # an absolute test rejected solvable steps: false jams at phi = 0.84)
+                # an absolute test rejected solvable steps: false jams at phi = 0.84).  The
+                # shift's own error on w, 1e-12 ||N|| max f, is ~70x the floor tolerance
+                # 64 eps ||N|| max f: a shifted solution that refinement cannot correct (a
+                # compressed self-stress, q not in range N_AA) is still rejected
                 bad = max(0.0, -info.min_w)
                 w_tol = max(1e-8 * max(1.0, float(np.abs(c.b).max())), FLOOR_FACTOR * info.floor)
                 feasible = (bad <= w_tol and dg * bad <= self.overlap_tol
