@@ -52,8 +52,10 @@ def setup_logging(comm, quiet: bool) -> None:
 class Run:
     def __init__(self, scene: dict, comm, path: str, quiet: bool = False,
                  cmdline_options: set[str] | None = None, restart: bool = False,
-                 max_steps: int | None = None):
+                 max_steps: int | None = None, file_attrs: dict | None = None):
         self.scene, self.comm, self.path = scene, comm, path
+        self.file_attrs = dict(file_attrs or {})   # more root attributes of a new file (an
+        # ensemble's sample index and seed, parflow.ensemble)
         self.rank = comm.getRank()
         self.quiet = quiet
         self.restart = restart
@@ -112,7 +114,8 @@ class Run:
                              solver=solver_desc, parallel=eng.parallel, versions=versions(), n_ranks=comm.getSize(),
                              git_commit=git_commit(), created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                              status="running", message="", model=scene["model"]["name"],
-                             engine=eng.kind, scene_settings="\n".join(scene.get("settings", [])))
+                             engine=eng.kind, scene_settings="\n".join(scene.get("settings", [])),
+                             **self.file_attrs)
                 writer.create(attrs, {"initial": (state.to_groups(), {}),
                                       "model": ({}, {k: v for k, v in state.meta.items()
                                                      if isinstance(v, (int, float, str))})})

@@ -58,6 +58,17 @@ class SceneOptions:
     seed: int = _key(1, *NON_NEGATIVE, "same seed, same result")
 
 
+@dataclass
+class EnsembleOptions:
+    """The scene's [ensemble] table (``schema``): many samples of the scene in one job
+    (``parflow.ensemble``, docs/ensembles.md).  Here, not in ensemble.py: the schema sits
+    below the run (layer 5)."""
+    samples: int = _key(0, *NON_NEGATIVE, "samples of the scene in one job (0: one run, no "
+                        "ensemble); --samples K overrides")
+    ranks_per_sample: int = _key(1, lambda v: v > 0, "> 0", "ranks of each sample's group "
+                                 "(the job's ranks must be a multiple); --ranks-per-sample overrides")
+
+
 # section -> key -> schema.Key(type, default, check, allowed, doc): each section's keys are
 # declared once, by the dataclass of the code that uses them
 SCHEMA = {
@@ -67,6 +78,7 @@ SCHEMA = {
     "observables": table(ObservablesOptions),
     "solver": table(SolverOptions),
     "output": table(OutputOptions),
+    "ensemble": table(EnsembleOptions),
 }
 # step-control presets (the speed/accuracy trade; measured in docs/benchmarks.md): the keys
 # they set; "default" is StepControl's own defaults
@@ -77,7 +89,8 @@ INTEGRATOR_PRESETS = {
 }
 
 LEG = table(LegRule)
-SECTIONS = ("model", "protocol", "integrator", "observables", "solver", "output", "petsc")
+SECTIONS = ("model", "protocol", "integrator", "observables", "solver", "output", "ensemble",
+            "petsc")
 
 
 def _unknown(key: str, allowed, where: str) -> InputError:

@@ -18,7 +18,7 @@ import sys
 from .cli import cmdline_option_names, init_petsc, run_main, split_petsc_args
 from .errors import collective
 
-USAGE_FLAGS = {"--output", "--restart", "--max-steps", "--set"}
+USAGE_FLAGS = {"--output", "--restart", "--max-steps", "--set", "--samples", "--ranks-per-sample"}
 
 
 def parser() -> argparse.ArgumentParser:
@@ -39,6 +39,12 @@ def parser() -> argparse.ArgumentParser:
                    help="change a scene setting (repeatable), e.g. --set integrator.controller=PI; "
                         "with --restart: [integrator], [solver] and [output] keys only; the file "
                         "records every setting and a later restart applies them again")
+    p.add_argument("--samples", type=int, metavar="K", help="run K samples of the scene in this "
+                   "job (an ensemble, docs/ensembles.md; overrides ensemble.samples): the output "
+                   "is a folder (--output FOLDER, default the scene's output.path without .h5); "
+                   "--restart FOLDER continues it")
+    p.add_argument("--ranks-per-sample", type=int, metavar="r", help="ranks of each sample's "
+                   "group (overrides ensemble.ranks_per_sample; default 1)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the figures at the end")
     p.add_argument("--print-scene", action="store_true", help="print the default scene and exit")
     return p
@@ -139,9 +145,18 @@ def _run(args, petsc_args, PETSc) -> int:
                          "scene's output.path")
     if args.max_steps is not None and args.max_steps <= 0:
         raise InputError("--max-steps must be a positive integer")
+    if args.samples is not None and args.samples <= 0:
+        raise InputError("--samples must be a positive integer")
+    if args.ranks_per_sample is not None and args.ranks_per_sample <= 0:
+        raise InputError("--ranks-per-sample must be a positive integer")
+    if args.restart and os.path.isdir(args.restart):
+        return _ensemble(args, petsc_args, comm, None)
     if args.restart:
         if args.scene:
             raise InputError("--restart FILE takes the scene from FILE: do not give a scene with it")
+        if args.samples is not None or args.ranks_per_sample is not None:
+            raise InputError("--samples / --ranks-per-sample: --restart FILE continues one run; "
+                             "an ensemble restarts from its folder (--restart FOLDER)")
         text, before = collective(comm, _restart_scene, args.restart)
         scene = load_scene(text, args.restart)
         scene = apply_settings(scene, before)    # the file's own settings, checked when they were given
@@ -153,6 +168,10 @@ def _run(args, petsc_args, PETSc) -> int:
         else:
             text, source = DEFAULT_SCENE, "<default scene>"
         scene = apply_settings(with_overrides(load_scene(text, source), args.output), args.set)
+        if (args.samples or scene["ensemble"]["samples"]) > 0:
+            return _ensemble(args, petsc_args, comm, scene, source)
+        if args.ranks_per_sample is not None:
+            raise InputError("--ranks-per-sample is for an ensemble: give --samples K too")
     # before anything is allocated or written: the size against the machine's memory, the
     # PETSc options against PETSc (scene [petsc] table, then the command line, which wins)
     collective(comm, check_resources, scene, comm.getSize(), ranks_on_node(comm))
@@ -177,6 +196,64 @@ def _run(args, petsc_args, PETSc) -> int:
     if not args.no_plots and comm.getRank() == 0:
         _plots(path, args.quiet)
     return 0 if status in ("complete", "jammed", "budget") else 1
+
+
+def _ensemble(args, petsc_args, comm, scene, source=None) -> int:
+    """The ensemble branch (``parflow.ensemble``): ``scene`` the loaded scene of a new
+    ensemble, or None for ``--restart FOLDER`` (the scene then comes from its index)."""
+    # (here, not at the top: see the module docstring)
+    from .cli import ranks_on_node
+    from .ensemble import folder_of, read_index, run_ensemble
+    from .scene import apply_settings, check_resources, load_scene
+    from .algebra.solvers import check_options_on, insert_options
+    from .state import InputError
+    if scene is None:                         # --restart FOLDER
+        folder = args.restart
+        if args.scene or args.set or args.output:
+            raise InputError("--restart FOLDER continues the ensemble in FOLDER with its own "
+                             "scene and settings: do not give a scene, --set or --output with it")
+        idx = collective(comm, read_index, folder)["attrs"]
+        text, source = str(idx["scene"]), os.path.join(folder, "ensemble.h5")
+        settings = [x for x in str(idx.get("scene_settings", "")).split("\n") if x]
+        scene = apply_settings(load_scene(text, source), settings)
+        stored, rps = int(idx["samples"]), int(idx["ranks_per_sample"])
+        samples = args.samples if args.samples is not None else stored
+        if samples < stored:
+            raise InputError(f"--samples {samples}: the ensemble in {folder!r} has {stored} "
+                             f"samples; a restart can add samples, not drop them")
+        rps = args.ranks_per_sample or rps
+    else:
+        folder = args.output or folder_of(scene["output"]["path"])
+        settings = list(scene.get("settings", []))
+        samples = args.samples or scene["ensemble"]["samples"]
+        rps = args.ranks_per_sample or scene["ensemble"]["ranks_per_sample"]
+        if args.scene and _same_file(args.scene, folder):
+            raise InputError(f"the output {folder!r} is the scene file itself")
+    if not folder.strip():
+        raise InputError("the ensemble's output folder is empty: give --output FOLDER")
+    n = comm.getSize()
+    if n % rps:
+        raise InputError(f"ranks_per_sample = {rps} does not divide the job's {n} ranks: run on "
+                         f"a multiple of {rps} ranks")
+    collective(comm, check_resources, scene, rps, ranks_on_node(comm))
+    cmdline = cmdline_option_names(petsc_args)
+    insert_options(scene["petsc"], cmdline)
+    check_options_on(comm, cmdline)
+    base = dict(text=scene["text"], seed=scene["seed"], source=source or "<scene>",
+                settings=settings, scene=scene)
+    code = run_ensemble(base, folder, samples, rps, restart=bool(args.restart),
+                        overwrite=args.overwrite, cmdline=cmdline, max_steps=args.max_steps,
+                        quiet=args.quiet)
+    if not args.no_plots and comm.getRank() == 0:
+        try:
+            from .plot import make_ensemble_plots    # (matplotlib only when figures are drawn)
+            written, _ = make_ensemble_plots(folder)
+            if written:
+                logging.getLogger("parflow").info("figures: %s", ", ".join(written))
+        except Exception as exc:    # a figure must never turn a good ensemble into a failure
+            logging.getLogger("parflow").warning("plots not drawn (%s: %s); run python -m "
+                                                 "parflow.plot %s", type(exc).__name__, exc, folder)
+    return code
 
 
 def _same_file(a: str, b: str) -> bool:

@@ -18,7 +18,7 @@ LAYERS = {
     "dynamics": 3,
     "models": 4,
     "protocol": 5, "scene": 5, "provenance": 5, "checkpoint": 5,
-    "run": 6,
+    "run": 6, "ensemble": 6,
     "post": 6, "plot": 7,
     "cli": 8, "shear": 8, "spectrum": 8, "modes": 8, "prepare": 8,
 }

@@ -46,6 +46,7 @@ from ..post.report import format_fits
 from . import chain, common, network, network_across, suspension  # noqa: F401
 from .base import (ACROSS_FIGURES, FIGURES, MODELS, Run, RunFileError, Skip,  # noqa: F401
                    figure, load_run)
+from .ensemble import ENSEMBLE_FIGURES, make_ensemble_plots  # noqa: F401  (FOLDER of an ensemble)
 
 __all__ = ["ACROSS_FIGURES", "FIGURES", "MODELS", "PlotResult", "Run", "RunFileError", "Skip",
            "across_fits", "chain_fits", "default_outdir", "figure", "fit_divergence_point",
@@ -196,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
                     choices=[s.name for s in FIGURES + ACROSS_FIGURES],
                     help="draw only this figure (repeatable)")
     args = ap.parse_args(argv)
+    if len(args.files) == 1 and os.path.isfile(os.path.join(args.files[0], "summary.h5")):
+        return _ensemble_main(args.files[0], args.out, args.format)
     try:
         runs = [load_run(p) for p in args.files]
     except RunFileError as exc:
@@ -227,3 +230,17 @@ def main(argv: list[str] | None = None) -> int:
             print(f"parflow.plot: {line}", file=sys.stderr)
         failed |= bool(res.failed)
     return 1 if failed else 0
+
+
+def _ensemble_main(folder: str, out: str | None, fmt: str) -> int:
+    """``python -m parflow.plot FOLDER``: the averaged figures of an ensemble folder."""
+    try:
+        written, skipped = make_ensemble_plots(folder, out, fmt)
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"parflow.plot: error: {folder}: {exc}", file=sys.stderr)
+        return 2
+    for p in written:
+        print(p)
+    for name, why in skipped:
+        print(f"parflow.plot: skipped {name}: {why}", file=sys.stderr)
+    return 0

@@ -1,0 +1,359 @@
+"""Statistics of an ensemble folder (``parflow.ensemble``, docs/ensembles.md): the summary
+file ``FOLDER/summary.h5``, computed from the sample files ``FOLDER/sample_NNNN.h5``.
+
+Only samples whose file says complete, jammed or budget enter the statistics (the others are
+listed with their status).  For each quantity: the per-sample values (NaN where a sample has
+none), and over the finite ones the mean, the standard error s / sqrt(n) (s the sample
+standard deviation, ddof = 1; NaN for n < 2) and the count n.
+
+* ``scalars/NAME``: the last time-series row of each sample (``final_sigma``, ``final_V2``,
+  ``final_gamma``, ``final_strain``, ``steps``, ...).
+* ``fits/NAME``: each sample's fitted numbers (``post.chain.chain_fits``,
+  ``post.network.network_fits``), flattened to names like ``forward.attr.V2.0`` (an
+  exponent) -- each with mean and standard error over the samples.
+* ``curves/NAME``: curves on a common grid (``x``): per sample (rows), the mean, standard
+  error and count at each grid point (a sample counts where the grid lies inside its own
+  range): ``sigma_leg{L}`` against the strain since the start of leg L (every model),
+  ``V2_forward`` against gamma_c - gamma on the chain's forward leg (log grid, log-log
+  interpolation), ``dsigma_dgamma_reverse`` against sigma on a network's first reversed leg
+  (log grid).
+* ``ensemble_fits/NAME``: numbers fitted to the averaged curves, with jackknife errors
+  (leave one sample out, refit: err^2 = (n - 1)/n sum_i (f_i - mean f_i)^2): the chain's
+  <V^2> exponent against gamma_c - gamma.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import tomllib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..io import RunFile, atomic_h5, open_hdf5
+from .chain import chain_fits
+from .fits import BINS_PER_DECADE, fit_power_law, fit_window, forward_rows, reverse_rows
+from .network import network_fits, reverse_branch
+
+SUMMARY_FORMAT = "parflow-ensemble-summary-1"
+DONE = ("complete", "jammed", "budget")
+GRID_POINTS = 128
+FITS = {"chain": chain_fits, "network": network_fits}
+FINAL_COLUMNS = ("gamma", "strain", "sigma", "V2", "step")
+
+
+@dataclass
+class SampleRun:
+    """One sample file read into memory, shaped like ``parflow.plot.load_run``'s Run (what
+    the fits of :mod:`parflow.post` take)."""
+    path: str
+    attrs: dict
+    model: str
+    model_attrs: dict
+    scene: dict
+    ts: dict
+    analysis: list = field(default_factory=list)
+
+    def param(self, name, default=None):
+        return self.scene.get("model", {}).get(name, default)
+
+
+def load_sample(path: str) -> SampleRun:
+    with RunFile(path) as rf:
+        attrs = rf.attrs
+        try:
+            scene = tomllib.loads(rf.scene_text)
+        except tomllib.TOMLDecodeError:
+            scene = {}
+        model = rf.model or str(scene.get("model", {}).get("name", ""))
+        model_attrs, ts, analysis = rf.model_attrs, rf.timeseries(), rf.analyses()
+    if "step" in ts and len(ts["step"]):
+        for a in analysis:
+            rows = np.nonzero(ts["step"] == a["step"])[0]
+            if rows.size:
+                r = rows[-1]
+                a.setdefault("direction", int(ts["direction"][r]) if "direction" in ts else 1)
+                a.setdefault("leg", int(ts["leg"][r]) if "leg" in ts else 0)
+                a["row"] = int(r)
+    return SampleRun(path, attrs, model, model_attrs, scene, ts, analysis)
+
+
+def sample_files(folder: str) -> list[tuple[int, str]]:
+    """(index, path) of the sample files in ``folder``, by index."""
+    out = []
+    for name in os.listdir(folder):
+        m = re.fullmatch(r"sample_(\d+)\.h5", name)
+        if m:
+            out.append((int(m.group(1)), os.path.join(folder, name)))
+    return sorted(out)
+
+
+# ---------------------------------------------------------------------------------------
+# statistics
+# ---------------------------------------------------------------------------------------
+def mean_sem(values) -> tuple:
+    """Mean, standard error (ddof = 1) and count over axis 0, finite values only."""
+    v = np.asarray(values, float)
+    ok = np.isfinite(v)
+    n = ok.sum(axis=0)
+    s1 = np.where(ok, v, 0.0).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, s1 / np.maximum(n, 1), np.nan)
+        dev = np.where(ok, v - mean, 0.0)
+        var = np.where(n > 1, (dev ** 2).sum(axis=0) / np.maximum(n - 1, 1), np.nan)
+        sem = np.sqrt(var / np.maximum(n, 1))
+    return mean, sem, n
+
+
+def jackknife(estimate, n: int) -> tuple[float, float]:
+    """``estimate(keep)`` on all n samples and with each left out (``keep`` a boolean
+    mask); returns (the estimate on all, its jackknife standard error; NaN for n < 2 or when
+    a leave-one-out estimate is not finite)."""
+    full = float(estimate(np.ones(n, bool)))
+    if n < 2:
+        return full, float("nan")
+    loo = np.array([estimate(np.arange(n) != i) for i in range(n)], float)
+    if not np.all(np.isfinite(loo)):
+        return full, float("nan")
+    return full, float(np.sqrt((n - 1) / n * np.sum((loo - loo.mean()) ** 2)))
+
+
+def on_grid(x, y, grid, log: bool = False):
+    """y(x) interpolated onto ``grid`` (NaN outside the range of x); ``log``: in log-log."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if log:
+        ok &= (x > 0) & (y > 0)
+    x, y = x[ok], y[ok]
+    out = np.full(len(grid), np.nan)
+    if x.size < 2:
+        return out
+    order = np.argsort(x, kind="stable")
+    x, y = x[order], y[order]
+    if log:
+        x, y, g = np.log(x), np.log(y), np.log(grid)
+    else:
+        g = np.asarray(grid, float)
+    inside = (g >= x[0]) & (g <= x[-1])
+    out[inside] = np.interp(g[inside], x, y)
+    return np.exp(out) if log else out
+
+
+SKIP_FITS = ("theory", "mu", "model", "N", "seed", "path")   # constants, not measurements
+
+
+def _flatten(d, prefix="") -> dict:
+    """The finite numbers of a nested fits dict, by dotted name: a pair is (exponent,
+    prefactor) of a power law, or (lo, hi) of a ``window``; other tuples by position."""
+    out = {}
+    if isinstance(d, dict):
+        items = [(k, v) for k, v in d.items() if not (prefix == "" and k in SKIP_FITS)]
+    elif len(d) == 2:
+        items = zip(("lo", "hi") if prefix.endswith("window.") else ("exponent", "prefactor"), d)
+    else:
+        items = enumerate(d)
+    for k, v in items:
+        name = f"{prefix}{k}"
+        if isinstance(v, (dict, tuple)):
+            out.update(_flatten(v, name + "."))
+        elif isinstance(v, (bool, np.bool_)):
+            continue
+        elif isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(float(v)):
+            out[name] = float(v)
+    return out
+
+
+def _leg_curves(runs) -> dict:
+    """sigma against the strain since the start of each leg, on a linear grid."""
+    out = {}
+    legs = sorted({int(x) for r in runs for x in np.unique(r.ts.get("leg", []))})
+    for L in legs:
+        xs, ys = [], []
+        for r in runs:
+            if "leg" not in r.ts or "sigma" not in r.ts or "strain" not in r.ts:
+                xs.append(None), ys.append(None)
+                continue
+            rows = np.nonzero(r.ts["leg"] == L)[0]
+            if rows.size < 2:
+                xs.append(None), ys.append(None)
+                continue
+            st = r.ts["strain"][rows]
+            xs.append(st - st[0]), ys.append(r.ts["sigma"][rows])
+        top = max((float(np.nanmax(x)) for x in xs if x is not None), default=0.0)
+        if top <= 0:
+            continue
+        grid = np.linspace(0.0, top, GRID_POINTS)
+        vals = np.array([on_grid(x, y, grid) if x is not None else np.full(GRID_POINTS, np.nan)
+                         for x, y in zip(xs, ys)])
+        out[f"sigma_leg{L}"] = dict(x=grid, values=vals, xlabel=f"strain since the start of leg {L}",
+                                    ylabel="sigma", xscale="linear", yscale="log")
+    return out
+
+
+def _log_grid(xs) -> np.ndarray | None:
+    pos = [x[np.isfinite(x) & (x > 0)] for x in xs if x is not None]
+    pos = [p for p in pos if p.size]
+    if not pos:
+        return None
+    lo, hi = min(float(p.min()) for p in pos), max(float(p.max()) for p in pos)
+    if not hi > lo:
+        return None
+    return np.geomspace(lo, hi, GRID_POINTS)
+
+
+def _chain_curve(runs) -> dict:
+    """<V^2> against gamma_c - gamma on the forward leg (gamma_c: each sample's exact one)."""
+    xs, ys = [], []
+    for r in runs:
+        fw = forward_rows(r)
+        gc = float(r.model_attrs.get("gamma_c", np.nan))
+        if fw is None or not np.isfinite(gc) or "V2" not in r.ts:
+            xs.append(None), ys.append(None)
+            continue
+        xs.append(gc - r.ts["gamma"][fw]), ys.append(r.ts["V2"][fw])
+    grid = _log_grid(xs)
+    if grid is None:
+        return {}
+    vals = np.array([on_grid(x, y, grid, log=True) if x is not None else np.full(len(grid), np.nan)
+                     for x, y in zip(xs, ys)])
+    return {"V2_forward": dict(x=grid, values=vals, xlabel="gamma_c - gamma", ylabel="<V^2>",
+                               xscale="log", yscale="log")}
+
+
+def _network_curve(runs) -> dict:
+    """dsigma/dgamma against sigma on the first reversed leg."""
+    xs, ys = [], []
+    for r in runs:
+        rv = reverse_rows(r)
+        if rv is None or "sigma" not in r.ts or "strain" not in r.ts or rv[0].stop - rv[0].start < 3:
+            xs.append(None), ys.append(None)
+            continue
+        b = reverse_branch(r.ts["strain"][rv[0]], r.ts["sigma"][rv[0]])
+        xs.append(b["sigma"]), ys.append(-b["dsdg"])
+    grid = _log_grid(xs)
+    if grid is None:
+        return {}
+    vals = np.array([on_grid(x, y, grid, log=True) if x is not None else np.full(len(grid), np.nan)
+                     for x, y in zip(xs, ys)])
+    return {"dsigma_dgamma_reverse": dict(x=grid, values=vals, xlabel="sigma",
+                                          ylabel="-dsigma/dgamma (reversed leg)",
+                                          xscale="log", yscale="log")}
+
+
+def _chain_ensemble_fit(curve, runs) -> dict:
+    """The <V^2> exponent fitted to the averaged forward curve (window: the last decades
+    of gamma_c - gamma above 10 typical |dgamma|, as for one run), jackknife error."""
+    grid, vals = curve["x"], curve["values"]
+    dg = [chain_fits(r).get("dgamma_typical", 0.0) for r in runs]
+    lo, hi = fit_window(grid, max(dg) if dg else 0.0)
+
+    def est(keep):
+        m, _, n = mean_sem(vals[keep])
+        m = np.where(n == keep.sum(), m, np.nan)      # only where every kept sample counts
+        return fit_power_law(grid, m, lo, hi, BINS_PER_DECADE)[0]
+    value, err = jackknife(est, len(vals))
+    return {"V2_forward_exponent": dict(value=value, jackknife_err=err, n=len(vals),
+                                        window_lo=lo, window_hi=hi)}
+
+
+def summarise(folder: str) -> dict:
+    """The ensemble's statistics (the summary file's content, as dicts of arrays)."""
+    files = sample_files(folder)
+    index, status, seeds, runs = [], [], [], []
+    for k, path in files:
+        try:
+            r = load_sample(path)
+        except Exception as exc:       # a damaged sample file is listed, not used
+            index.append(k)
+            status.append(f"unreadable: {exc}"[:200])
+            seeds.append(-1)
+            continue
+        index.append(k)
+        status.append(str(r.attrs.get("status", "")))
+        seeds.append(int(r.attrs.get("sample_seed", -1)))
+        if status[-1] in DONE and r.ts and len(r.ts.get("step", [])):
+            runs.append((k, r))
+    used = np.array([k for k, _ in runs], dtype=np.int64)
+    rs = [r for _, r in runs]
+    model = rs[0].model if rs else ""
+    scalars = {}
+    for c in FINAL_COLUMNS:
+        vals = np.array([float(r.ts[c][-1]) if c in r.ts and len(r.ts[c]) else np.nan for r in rs])
+        if c == "step":
+            scalars["steps"] = vals
+        else:
+            scalars[f"final_{c}"] = vals
+    fits = {}
+    fn = FITS.get(model)
+    if fn is not None and rs:
+        flat = []
+        for r in rs:
+            try:
+                flat.append(_flatten(fn(r)))
+            except Exception:          # a sample whose fit fails has none
+                flat.append({})
+        names = sorted({n for f in flat for n in f})
+        fits = {n: np.array([f.get(n, np.nan) for f in flat]) for n in names}
+    curves = {}
+    if rs:
+        curves.update(_leg_curves(rs))
+        if model == "chain":
+            curves.update(_chain_curve(rs))
+        if model == "network":
+            curves.update(_network_curve(rs))
+    ens = {}
+    if "V2_forward" in curves:
+        ens.update(_chain_ensemble_fit(curves["V2_forward"], rs))
+    return dict(model=model, index=np.array(index, dtype=np.int64), status=status,
+                seed=np.array(seeds, dtype=np.int64), used=used, scalars=scalars, fits=fits,
+                curves=curves, ensemble_fits=ens)
+
+
+def write_summary(folder: str) -> str:
+    """Compute the statistics and write ``FOLDER/summary.h5`` (whole or not at all)."""
+    s = summarise(folder)
+    path = os.path.join(folder, "summary.h5")
+    with atomic_h5(path) as f:
+        f.attrs["format"] = SUMMARY_FORMAT
+        f.attrs["model"] = s["model"]
+        f.attrs["n_samples"] = len(s["index"])
+        f.attrs["n_used"] = len(s["used"])
+        g = f.create_group("samples")
+        g["sample"] = s["index"]
+        g["seed"] = s["seed"]
+        g["status"] = np.array([x.encode() for x in s["status"]], dtype="S")
+        g["used"] = s["used"]
+        for section in ("scalars", "fits"):
+            sec = f.create_group(section)
+            for name, vals in s[section].items():
+                m, e, n = mean_sem(vals)
+                q = sec.create_group(name)
+                q["values"], q["mean"], q["sem"], q["count"] = vals, m, e, n
+        sec = f.create_group("curves")
+        for name, c in s["curves"].items():
+            m, e, n = mean_sem(c["values"])
+            q = sec.create_group(name)
+            q["x"], q["values"], q["mean"], q["sem"], q["count"] = c["x"], c["values"], m, e, n
+            for a in ("xlabel", "ylabel", "xscale", "yscale"):
+                q.attrs[a] = c[a]
+        sec = f.create_group("ensemble_fits")
+        for name, d in s["ensemble_fits"].items():
+            q = sec.create_group(name)
+            for a, v in d.items():
+                q.attrs[a] = v
+    return path
+
+
+def read_summary(path: str) -> dict:
+    """A summary file's content: attrs, samples, scalars, fits, curves, ensemble_fits."""
+    with open_hdf5(path) as f:
+        if f.attrs.get("format") != SUMMARY_FORMAT:
+            raise ValueError(f"{path!r} is not a parflow ensemble summary")
+
+        def grp(name):
+            return {k: {d: v[()] for d, v in f[name][k].items()} | dict(f[name][k].attrs)
+                    for k in f[name]} if name in f else {}
+        return dict(attrs=dict(f.attrs), samples={k: v[()] for k, v in f["samples"].items()},
+                    scalars=grp("scalars"), fits=grp("fits"), curves=grp("curves"),
+                    ensemble_fits={k: dict(f["ensemble_fits"][k].attrs) for k in f["ensemble_fits"]})

@@ -1,0 +1,306 @@
+"""Ensembles (parflow.ensemble, parflow.post.ensemble): the seed rule, samples on groups of
+ranks equal to the same samples run one by one (bit for bit, whatever the number of ranks and
+the order), a failing sample that stops neither the others nor the job, an interrupted
+ensemble restarted, and the summary's statistics against numpy on the sample files."""
+import os
+import shutil
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from parflow.ensemble import SEED_RULE, sample_seed, sample_text
+from parflow.errors import InputError
+from parflow.scene import load_scene
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from reference_runs import VOLATILE, flatten  # noqa: E402
+
+pytestmark = pytest.mark.serial_only      # each test launches its own processes
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+SCENE = """
+title = "ensemble test"
+seed = 5
+[model]
+name = "chain"
+N = 60
+epsilon = 0.1
+mu = 0
+[[protocol.leg]]
+direction = "forward"
+V2_above = 300.0
+[[protocol.leg]]
+direction = "reverse"
+strain = 0.004
+[output]
+path = "unused.h5"
+checkpoint_every = 10
+"""
+
+# runs parflow.shear with a failure or a stop injected into one sample (in that process)
+HOOK = """
+import sys
+import parflow.ensemble as E
+import parflow.protocol as P
+from parflow.state import STOPS
+mode, target, at = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+current = [None]
+run_sample = E.run_sample
+def wrapped(group, folder, k, *a, **kw):
+    current[0] = k
+    return run_sample(group, folder, k, *a, **kw)
+E.run_sample = wrapped
+advance = P.Clock.advance
+def hooked(self, dg):
+    advance(self, dg)
+    if current[0] == target and self.step == at:
+        if mode == "fail":
+            raise RuntimeError(f"injected failure of sample {target}")
+        STOPS.handle(2)          # as if SIGTERM arrived during this step
+P.Clock.advance = hooked
+import parflow.shear
+sys.exit(parflow.shear.main(sys.argv[4:]))
+"""
+
+
+def _env():
+    return dict(os.environ, PYTHONPATH=ROOT)
+
+
+def shear(*args, mpi=0, timeout=120, hook=None, cwd=None):
+    cmd = [sys.executable, "-m", "parflow.shear"] if hook is None else \
+        [sys.executable, "-c", HOOK, *map(str, hook)]
+    cmd += [*map(str, args)]
+    if mpi:
+        cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=_env(), cwd=cwd)
+
+
+def scene(tmp_path, text=SCENE):
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return p
+
+
+# a restarted run's own record, and the solver's counters, which count the last session only
+RESTART = {"@restarted_at_step", "@n_factorisations", "@n_reused_factor", "@n_reuse_failed"}
+
+
+def content(path, restarted=False) -> dict:
+    """Every dataset and attribute of a sample file but the machine's (wall times, ...)."""
+    with h5py.File(path) as f:
+        return {k: v for k, v in flatten(f).items() if not (restarted and k in RESTART)}
+
+
+def assert_same(a, b, restarted=False):
+    ca, cb = content(a, restarted), content(b, restarted)
+    assert ca.keys() == cb.keys(), set(ca) ^ set(cb)
+    for k in ca:
+        assert np.array_equal(ca[k], cb[k]) or (isinstance(ca[k], np.ndarray) and
+                                                np.array_equal(ca[k], cb[k], equal_nan=True)), k
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    """The reference: 5 samples, one after the other, on one rank."""
+    d = tmp_path_factory.mktemp("serial")
+    res = shear(scene(d), "--samples", 5, "--output", d / "ens", "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    return d / "ens"
+
+
+def sample(folder, k):
+    return os.path.join(folder, f"sample_{k:04d}.h5")
+
+
+# ---------------------------------------------------------------------------------------
+def test_seed_rule():
+    """seed_k depends on (seed, k) only: numpy's SeedSequence(seed).spawn(K)[k], 63 bits."""
+    seeds = [sample_seed(5, k) for k in range(200)]
+    assert len(set(seeds)) == 200 and all(0 <= s < 2**63 for s in seeds)
+    spawned = np.random.SeedSequence(5).spawn(200)
+    assert seeds == [int(s.generate_state(1, np.uint64)[0] >> np.uint64(1)) for s in spawned]
+    assert sample_seed(5, 7) == seeds[7] and sample_seed(6, 7) != seeds[7]
+    assert "SeedSequence" in SEED_RULE
+    # the sample's scene text: the same scene but for its seed
+    text = sample_text(SCENE, seeds[3])
+    a, b = load_scene(SCENE), load_scene(text)
+    assert b["seed"] == seeds[3]
+    assert {**a, "seed": 0, "text": ""} == {**b, "seed": 0, "text": ""}
+    no_seed = SCENE.replace("seed = 5\n", "")
+    assert load_scene(sample_text(no_seed, 11))["seed"] == 11
+    with pytest.raises(InputError, match="cannot set each sample's seed"):
+        sample_text(SCENE.replace("seed = 5", "\"seed\" = 5"), 1)   # a quoted key
+
+
+def test_serial_samples_record_index_and_seed(serial):
+    with h5py.File(os.path.join(serial, "ensemble.h5")) as f:
+        assert list(f["status"].asstr()[()]) == ["complete"] * 5
+        assert list(f["seed"][()]) == [sample_seed(5, k) for k in range(5)]
+        assert f.attrs["samples"] == 5 and f.attrs["seed"] == 5
+    for k in range(5):
+        with h5py.File(sample(serial, k)) as f:
+            assert f.attrs["sample"] == k and f.attrs["sample_seed"] == sample_seed(5, k)
+            assert f.attrs["status"] == "complete"
+    # different seeds, different samples
+    with h5py.File(sample(serial, 0)) as f0, h5py.File(sample(serial, 1)) as f1:
+        assert not np.array_equal(f0["initial/s"][()], f1["initial/s"][()])
+
+
+def test_two_samples_on_two_ranks_equal_serial(serial, tmp_path):
+    res = shear(scene(tmp_path), "--samples", 2, "--output", tmp_path / "ens", "--quiet",
+                "--no-plots", mpi=2)
+    assert res.returncode == 0, res.stderr
+    for k in range(2):
+        assert_same(sample(tmp_path / "ens", k), sample(serial, k))
+
+
+def test_queue_five_samples_on_three_groups(serial, tmp_path):
+    """K = 5 on 3 ranks: a queue; every sample is the serial one, whoever ran it."""
+    res = shear(scene(tmp_path), "--samples", 5, "--output", tmp_path / "ens", "--quiet",
+                "--no-plots", mpi=3, timeout=180)
+    assert res.returncode == 0, res.stderr
+    for k in range(5):
+        assert_same(sample(tmp_path / "ens", k), sample(serial, k))
+    assert not os.path.exists(tmp_path / "ens" / ".claims")
+
+
+def test_failing_sample_does_not_stop_the_others(serial, tmp_path):
+    """Sample 1 raises mid-run (an exception no solver check expected): it is recorded as
+    failed, the other samples run to the end (equal to the serial ones), the job exits 1
+    with one line naming the sample; no hang."""
+    folder = tmp_path / "ens"
+    res = shear(scene(tmp_path), "--samples", 4, "--output", folder, "--quiet", "--no-plots",
+                mpi=2, hook=("fail", 1, 10), timeout=120)
+    assert res.returncode == 1, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("parflow.shear: ensemble:")]
+    assert len(lines) == 1 and "1 of 4 samples failed (sample 1: RuntimeError: injected" in lines[0], res.stderr
+    assert "Traceback" not in res.stderr
+    with h5py.File(folder / "ensemble.h5") as f:
+        st = list(f["status"].asstr()[()])
+        assert st == ["complete", "failed", "complete", "complete"], st
+        assert "injected failure" in f["message"].asstr()[1]
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "failed"
+    for k in (0, 2, 3):
+        assert_same(sample(folder, k), sample(serial, k))
+    with h5py.File(folder / "summary.h5") as f:
+        assert list(f["samples/used"][()]) == [0, 2, 3]
+    # a restart skips the failed sample as well as the finished ones
+    res = shear("--restart", folder, "--quiet", "--no-plots")
+    assert res.returncode == 1 and "1 of 4 samples failed" in res.stderr
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "failed"
+
+
+@pytest.mark.parametrize("mpi", [0, 2])
+def test_interrupted_ensemble_restarts(serial, tmp_path, mpi):
+    """A stop (SIGTERM) in sample 1 at step 15: the job exits 143 with a checkpoint in
+    sample 1; --restart FOLDER skips the finished samples, continues sample 1 and starts
+    the rest; every sample is then bit-identical to the uninterrupted serial run."""
+    folder = tmp_path / "ens"
+    res = shear(scene(tmp_path), "--samples", 4, "--output", folder, "--quiet", "--no-plots",
+                mpi=mpi, hook=("stop", 1, 15))
+    assert res.returncode == 143, res.stderr
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "interrupted" and "checkpoint" in f
+        assert f["checkpoint"].attrs["step"] == 15
+    with h5py.File(sample(folder, 0)) as f:
+        assert f.attrs["status"] == "complete"
+    mtime0 = os.path.getmtime(sample(folder, 0))
+    res = shear("--restart", folder, "--quiet", "--no-plots", mpi=mpi)
+    assert res.returncode == 0, res.stderr
+    assert os.path.getmtime(sample(folder, 0)) == mtime0          # skipped, not rerun
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["restarted_at_step"] == 15
+    for k in range(4):
+        assert_same(sample(folder, k), sample(serial, k), restarted=k == 1)
+    with h5py.File(folder / "ensemble.h5") as f:
+        assert list(f["status"].asstr()[()]) == ["complete"] * 4
+
+
+def test_summary_against_numpy(serial):
+    """The summary's means, standard errors and counts, and its averaged <V^2> curve,
+    recomputed from the sample files with numpy."""
+    files = [h5py.File(sample(serial, k)) for k in range(5)]
+    try:
+        with h5py.File(os.path.join(serial, "summary.h5")) as s:
+            assert s.attrs["n_used"] == 5
+            for col, name in (("sigma", "final_sigma"), ("V2", "final_V2"), ("gamma", "final_gamma")):
+                v = np.array([f["timeseries"][col][-1] for f in files])
+                g = s["scalars"][name]
+                assert np.array_equal(g["values"][()], v)
+                assert np.isclose(g["mean"][()], v.mean(), rtol=1e-14)
+                assert np.isclose(g["sem"][()], v.std(ddof=1) / np.sqrt(5), rtol=1e-12)
+                assert g["count"][()] == 5
+            c = s["curves/V2_forward"]
+            x = c["x"][()]
+            rows = []
+            for f in files:
+                ts = f["timeseries"]
+                fw = ts["direction"][()] > 0
+                gc = f["model"].attrs["gamma_c"]
+                xx, yy = gc - ts["gamma"][()][fw], ts["V2"][()][fw]
+                o = np.argsort(xx)
+                lx, ly = np.log(xx[o]), np.log(yy[o])
+                r = np.full(x.size, np.nan)
+                inside = (np.log(x) >= lx[0]) & (np.log(x) <= lx[-1])
+                r[inside] = np.exp(np.interp(np.log(x[inside]), lx, ly))
+                rows.append(r)
+            rows = np.array(rows)
+            assert np.allclose(c["values"][()], rows, rtol=1e-12, equal_nan=True)
+            n = np.isfinite(rows).sum(axis=0)
+            assert np.array_equal(c["count"][()], n)
+            full = n == 5
+            assert np.allclose(c["mean"][()][full], rows[:, full].mean(axis=0), rtol=1e-12)
+            assert np.allclose(c["sem"][()][full], rows[:, full].std(axis=0, ddof=1) / np.sqrt(5),
+                               rtol=1e-10)
+            # a fitted exponent per sample: its mean and error; the ensemble fit and its
+            # jackknife error are finite and near the chain's forward exponent -(3 + mu)/(1 + mu)
+            e = s["fits/forward.attr.V2.exponent"]
+            assert e["count"][()] == 5 and np.isfinite(e["sem"][()])
+            fit = dict(s["ensemble_fits/V2_forward_exponent"].attrs)
+            assert np.isfinite(fit["value"]) and 0 < fit["jackknife_err"] < 1
+            assert abs(fit["value"] + 3) < 1.5
+    finally:
+        for f in files:
+            f.close()
+
+
+def test_plot_folder(serial, tmp_path):
+    out = tmp_path / "figs"
+    res = subprocess.run([sys.executable, "-m", "parflow.plot", str(serial), "--out", str(out)],
+                         capture_output=True, text=True, timeout=120, env=_env())
+    assert res.returncode == 0, res.stderr
+    assert (out / "ensemble_V2_forward.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (("--samples", 2, "--ranks-per-sample", 2), "ranks_per_sample = 2 does not divide the job's 1 ranks"),
+    (("--samples", 0), "--samples must be a positive integer"),
+    (("--ranks-per-sample", 2), "--ranks-per-sample is for an ensemble"),
+])
+def test_bad_ensemble_arguments(tmp_path, args, fragment):
+    res = shear(scene(tmp_path), "--output", tmp_path / "ens", *args)
+    assert res.returncode == 2, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("parflow.shear: error:")]
+    assert len(lines) == 1 and fragment in lines[0], res.stderr
+    assert not (tmp_path / "ens").exists()
+
+
+def test_existing_folder_and_bad_restart(tmp_path, serial):
+    res = shear(scene(tmp_path), "--samples", 2, "--output", serial, "--no-plots")
+    assert res.returncode == 2 and "holds an ensemble already" in res.stderr
+    res = shear("--restart", tmp_path, "--no-plots")
+    assert res.returncode == 2 and "is not an ensemble folder" in res.stderr
+    # the [ensemble] table of the scene, --samples on the command line wins
+    text = SCENE + "\n[ensemble]\nsamples = 3\n"
+    res = shear(scene(tmp_path, text), "--samples", 2, "--output", tmp_path / "e2", "--quiet",
+                "--no-plots")
+    assert res.returncode == 0, res.stderr
+    assert sorted(os.listdir(tmp_path / "e2")).count("sample_0001.h5") == 1
+    assert not (tmp_path / "e2" / "sample_0002.h5").exists()
