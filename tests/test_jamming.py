@@ -191,3 +191,27 @@ path = "{path}"
         assert g.attrs["gamma"] == pytest.approx(f["timeseries/gamma"][-1], abs=1e-15)
         assert len(g.attrs["dg_tried"]) >= 1 and np.all(g["tau"][:] > 0)
     comm.barrier()
+
+
+def test_larger_step_after_small_ones_fail():
+    """A straight periodic line of discs along the diagonal, each contact overlapping by
+    1e-13: a self-stress (tau = 1) that the shear decompresses (tau.b > 0) but that the
+    overlaps compress at steps below -tau.h / tau.b = 2e-13 (q = b + h/dg).  Every step from
+    4e-14 down to dg_min fails; the LP shows tau.b > 0, so this is not jamming: the step
+    control tries larger steps and goes on."""
+    from parflow.state import State
+    m = 20
+    L = m / np.sqrt(2)
+    t = (np.arange(m) + 0.5) / m
+    s = np.column_stack([t, t])
+    st = State(s, np.diag([L, L]), np.array([[0.0, 1.0], [0.0, 0.0]]), 0.0, None,
+               np.full(m, 0.5 + 5e-14))
+    assert hd.min_gap(st) == pytest.approx(-1e-13, rel=1e-2)
+    sim = hd.Suspension(st, dg_min=1e-16)
+    sim.last_dg = 1e-14                       # the growth cap: the first try is 4e-14
+    stats = sim.step()
+    assert sim.upward_searches == 1 and sim.infeasible_reductions >= 3
+    assert stats.dgamma > 2e-13
+    assert hd.min_gap(st) >= -1e-13           # the overlap did not grow
+    sim.run(0.01)
+    assert hd.min_gap(st) >= 0                # the shear opened the line

@@ -48,6 +48,12 @@ FIRST_DGAMMA = 1e-4
 # starting again from c/sigma -- near shear jamming that start failed again and again
 # (phi = 0.84: up to 600 solves per failed LCP, ~1e-4 strain per minute)
 MAX_GROWTH = 4.0
+# when no step down to dg_min is accepted and jamming is not proved, up to UPWARD_TRIES
+# steps above the first one tried, each UPWARD_FACTOR x the last (an LCP can be infeasible
+# at small steps only: overlapping gaps weigh -h/dg; and a step may fail for the solver's
+# sake at one size and not at another)
+UPWARD_FACTOR = 4.0
+UPWARD_TRIES = 4
 
 
 def min_gap(state: State, skin: float = DEFAULT_SKIN) -> float:
@@ -112,6 +118,7 @@ class Suspension:
         # largest overlap a step may create through an unsatisfied constraint (w < 0)
         self.overlap_tol = overlap_tol
         self.infeasible_reductions = 0
+        self.upward_searches = 0       # steps that searched above their first size
         self.omega = state.volume
         self.max_overlap = max(0.0, -min_gap(state))
         self.sigma = 0.0
@@ -187,7 +194,7 @@ class Suspension:
         self.max_overlap = max(self.max_overlap, overlap)
         dg = self.next_dgamma(cap)
         sig_max = 2.0 * float(st.radii.max())
-        tried, why = [], ""
+        tried, why, upward, cert = [], "", None, None
         while True:
             try:
                 S, q, f, V, info, warm = self.forces(c, dg, direction)
@@ -218,15 +225,32 @@ class Suspension:
             else:
                 self.infeasible_reductions += 1
             tried.append(dg)
+            if upward is not None:          # the search above the first step tried
+                if feasible:                # (the displacement bounds: larger won't do)
+                    upward = []
+                if not upward:
+                    self._failed(cert, tried, why)
+                dg = upward.pop(0)
+                continue
             dg *= 0.5 if feasible else 0.1
             if dg < self.dg_min and not feasible and tried[-1] > self.dg_min:
                 dg = self.dg_min            # the smallest step is tried before giving up
             if dg < self.dg_min:
-                if not feasible:
-                    self._jammed_or_failed(c, direction, tried, why)
-                raise ContactSolveError(
-                    f"suspension: step size fell below dg_min = {self.dg_min:g} at gamma = "
-                    f"{st.gamma:.10g} (max |V_na| = {vmax:.3g}: the displacement bounds)")
+                if feasible:
+                    raise ContactSolveError(
+                        f"suspension: step size fell below dg_min = {self.dg_min:g} at gamma "
+                        f"= {st.gamma:.10g} (max |V_na| = {vmax:.3g}: the displacement bounds)")
+                cert = self._certify(c, direction, tried)
+                if cert.certified and cert.tau_b < 0:
+                    self._jammed(cert, c, tried)
+                # not proved for every step: larger ones than the first may have a solution
+                # (a self-stress the flow does not compress, tau.b >= 0, is only infeasible
+                # below -tau.h / tau.b; a solver failure at small steps, h/dg large)
+                upward = self._larger_steps(tried, cert, cap)
+                self.upward_searches += 1
+                if not upward:
+                    self._failed(cert, tried, why)
+                dg = upward.pop(0)
         t2 = time.perf_counter()
         h_new = cell_at(st.h0, st.E, st.gamma + direction * dg)
         st.s = st.s + dg * V @ np.linalg.inv(h_new).T
@@ -250,33 +274,57 @@ class Suspension:
         self.last_f, self.last_c, self.last_V = f, c, V
         return stats
 
-    def _jammed_or_failed(self, c: Candidates, direction: int, tried: list, why: str):
-        """No step >= dg_min was accepted: raise :class:`ShearJammed` if a compressed
-        self-stress proves the LCP infeasible at the smallest step tried, else
-        :class:`ContactSolveError` (the LCP solver failed on a problem that has a solution,
-        or one this test cannot decide)."""
+    def _certify(self, c: Candidates, direction: int, tried: list):
+        """The LP certificate (``dynamics.jamming``) at the smallest step tried, and its
+        record for the run file."""
         st = self.state
         dg = tried[-1]
         S = rigidity_csr(c.n, c.i, c.j, st.n)
         v_adm = math.sqrt(st.n) * min(2 * self.dmax, 0.5 * self.skin) / dg
         cert = compressed_self_stress(S, direction * c.b, c.gap, dg, v_adm)
-        rec = cert.record()
-        rec.update(gamma=float(st.gamma), direction=int(direction), dg_min=float(self.dg_min),
-                   dg_tried=np.array(tried, float), n_candidates=len(c))
-        if not cert.certified:
-            raise ContactSolveError(
-                f"suspension: the contact LCP failed at gamma = {st.gamma:.10g} for every step "
-                f"from {tried[0]:.3g} down to {dg:.3g} (last: {why}), but it is not proved "
-                f"infeasible (no compressed self-stress: LP min tau.q = {cert.tau_q:.3g}, "
-                f"v_bound = {cert.v_bound:.3g} < {v_adm:.3g}; {cert.lp_status}): a solver "
-                f"failure, not shear jamming")
+        cert.rec = dict(cert.record(), gamma=float(st.gamma), direction=int(direction),
+                        dg_min=float(self.dg_min), n_candidates=len(c))
+        return cert
+
+    def _larger_steps(self, tried: list, cert, cap: float | None) -> list:
+        """Steps above the first one tried, x UPWARD_FACTOR each, up to UPWARD_TRIES of them
+        and within min(dg_max, c/sigma, dmax/max|V|, cap) (the growth cap lifted); above
+        2 (-tau.h / tau.b) when the LP found a self-stress the flow decompresses."""
+        bound = self.dg_max if cap is None else min(self.dg_max, max(cap, self.dg_min))
+        if self.sigma > 0:
+            bound = min(bound, self.c / self.sigma)
+        if self.vmax > 0:
+            bound = min(bound, self.dmax / self.vmax)
+        lo = max(tried)
+        if cert.tau_q < 0 and cert.tau_b > 0:
+            lo = max(lo, -cert.tau_h / cert.tau_b)
+        out = [lo * UPWARD_FACTOR ** k for k in range(1, UPWARD_TRIES + 1)]
+        out = [d for d in out if d <= bound]
+        if not out and lo < bound:
+            out = [bound]
+        return out
+
+    def _jammed(self, cert, c: Candidates, tried: list):
+        """Raise :class:`ShearJammed` with the proof: tau >= 0, S^T tau = 0, tau.q < 0 at the
+        smallest step, and tau.b < 0 (then tau.q < 0 at every larger step as well)."""
+        rec = dict(cert.rec, dg_tried=np.array(tried, float))
         P = np.flatnonzero(cert.tau > 0)
         raise ShearJammed(
-            f"suspension: shear-jammed at gamma = {st.gamma:.10g}: no step >= "
+            f"suspension: shear-jammed at gamma = {self.state.gamma:.10g}: no step >= "
             f"{self.dg_min:g} without overlap, proved by a compressed self-stress on "
             f"{cert.support} contacts (tau.b = {cert.tau_b:.4g}, tau.q = {cert.tau_q:.4g} at "
-            f"dg = {dg:.3g}, strain budget {cert.strain_budget:.3g}); stress is infinite at "
-            f"this N", certificate=rec, tau=cert.tau[P], pairs=(c.i[P], c.j[P]))
+            f"dg = {cert.dg:.3g}, strain budget {cert.strain_budget:.3g}); stress is infinite "
+            f"at this N", certificate=rec, tau=cert.tau[P], pairs=(c.i[P], c.j[P]))
+
+    def _failed(self, cert, tried: list, why: str):
+        """No step was accepted and jamming is not proved: a solver failure."""
+        raise ContactSolveError(
+            f"suspension: the contact LCP failed at gamma = {self.state.gamma:.10g} for every "
+            f"step tried ({', '.join(f'{d:.3g}' for d in tried)}; last: {why}), but it is not "
+            f"proved infeasible for every step (LP at dg = {cert.dg:.3g}: certified = "
+            f"{cert.certified}, min tau.q = {cert.tau_q:.3g}, tau.b = {cert.tau_b:.3g}, "
+            f"v_bound = {cert.v_bound:.3g} vs {cert.v_admissible:.3g}; {cert.lp_status}): a "
+            f"solver failure, not shear jamming")
 
     def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
         """Step forward until ``strain`` more strain has been applied (the last step capped
