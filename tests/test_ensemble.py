@@ -266,9 +266,18 @@ def test_summary_against_numpy(serial):
             fit = dict(s["ensemble_fits/V2_forward_exponent"].attrs)
             assert np.isfinite(fit["value"]) and 0 < fit["jackknife_err"] < 1
             assert abs(fit["value"] + 3) < 1.5
+            jam = dict(s["ensemble_fits/jamming_rate"].attrs)      # none jammed here
+            strain = sum(f["timeseries"]["strain"][-1] for f in files)
+            assert jam["n_jammed"] == 0 and jam["value"] == 0 and np.isclose(jam["strain"], strain)
     finally:
         for f in files:
             f.close()
+
+
+def test_jamming_rate_poisson():
+    from parflow.post.ensemble import jamming_rate
+    r = jamming_rate(["jammed", "complete", "jammed", "jammed"], [0.5, 1.0, 0.25, 0.25])
+    assert r["n_jammed"] == 3 and r["value"] == 3 / 2.0 and np.isclose(r["poisson_err"], np.sqrt(3) / 2)
 
 
 def test_plot_folder(serial, tmp_path):

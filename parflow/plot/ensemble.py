@@ -25,12 +25,14 @@ def ensemble_figure(name: str):
 @ensemble_figure("ensemble_curve")
 def ensemble_curve(summary: dict, curve: str):
     """One averaged curve: the samples (thin, grey), the mean (line) and mean +- one
-    standard error (band); the ensemble fit of <V^2> on the chain's forward curve."""
+    standard error (band) where every sample covers the grid; the ensemble fit of <V^2> on
+    the chain's forward curve (its window shaded)."""
     c = summary["curves"][curve]
     x, m, e, n, vals = c["x"], c["mean"], c["sem"], c["count"], c["values"]
     ok = np.isfinite(m) & (n >= 1)
     if not ok.any():
         raise Skip(f"curve {curve}: no sample covers the grid")
+    ok &= n == n[ok].max()        # the mean where every sample counts (no jumps at the ends)
     fig = new_figure(6.0, 4.2)
     ax = fig.add_subplot()
     for row in vals:

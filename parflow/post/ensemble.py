@@ -15,11 +15,12 @@ standard deviation, ddof = 1; NaN for n < 2) and the count n.
   error and count at each grid point (a sample counts where the grid lies inside its own
   range): ``sigma_leg{L}`` against the strain since the start of leg L (every model),
   ``V2_forward`` against gamma_c - gamma on the chain's forward leg (log grid, log-log
-  interpolation), ``dsigma_dgamma_reverse`` against sigma on a network's first reversed leg
-  (log grid).
+  interpolation), ``dsigma_dgamma_reverse`` (|dsigma/dgamma|, finite differences of
+  ``post.network.reverse_branch``) against sigma on a network's first reversed leg (log grid).
 * ``ensemble_fits/NAME``: numbers fitted to the averaged curves, with jackknife errors
   (leave one sample out, refit: err^2 = (n - 1)/n sum_i (f_i - mean f_i)^2): the chain's
-  <V^2> exponent against gamma_c - gamma.
+  <V^2> exponent against gamma_c - gamma; ``jamming_rate``, shear jams per unit strain with
+  its Poisson error (:func:`jamming_rate`).
 """
 from __future__ import annotations
 
@@ -230,14 +231,14 @@ def _network_curve(runs) -> dict:
             xs.append(None), ys.append(None)
             continue
         b = reverse_branch(r.ts["strain"][rv[0]], r.ts["sigma"][rv[0]])
-        xs.append(b["sigma"]), ys.append(-b["dsdg"])
+        xs.append(b["sigma"]), ys.append(np.abs(b["dsdg"]))
     grid = _log_grid(xs)
     if grid is None:
         return {}
     vals = np.array([on_grid(x, y, grid, log=True) if x is not None else np.full(len(grid), np.nan)
                      for x, y in zip(xs, ys)])
     return {"dsigma_dgamma_reverse": dict(x=grid, values=vals, xlabel="sigma",
-                                          ylabel="-dsigma/dgamma (reversed leg)",
+                                          ylabel="|dsigma/dgamma| (reversed leg)",
                                           xscale="log", yscale="log")}
 
 
@@ -255,6 +256,17 @@ def _chain_ensemble_fit(curve, runs) -> dict:
     value, err = jackknife(est, len(vals))
     return {"V2_forward_exponent": dict(value=value, jackknife_err=err, n=len(vals),
                                         window_lo=lo, window_hi=hi)}
+
+
+def jamming_rate(statuses, strains) -> dict:
+    """Shear jams per unit strain: n_jammed / (the strain all samples ran, summed), with its
+    Poisson error sqrt(n_jammed) / strain (a jam ends a sample: the strain it ran is its
+    exposure)."""
+    total = float(np.nansum(np.asarray(strains, float)))
+    n = int(sum(st == "jammed" for st in statuses))
+    rate = n / total if total > 0 else float("nan")
+    return dict(value=rate, poisson_err=math.sqrt(n) / total if total > 0 else float("nan"),
+                n_jammed=n, strain=total, n=len(statuses))
 
 
 def summarise(folder: str) -> dict:
@@ -305,6 +317,9 @@ def summarise(folder: str) -> dict:
     ens = {}
     if "V2_forward" in curves:
         ens.update(_chain_ensemble_fit(curves["V2_forward"], rs))
+    if rs:
+        ens["jamming_rate"] = jamming_rate([r.attrs.get("status") for r in rs],
+                                           scalars["final_strain"])
     return dict(model=model, index=np.array(index, dtype=np.int64), status=status,
                 seed=np.array(seeds, dtype=np.int64), used=used, scalars=scalars, fits=fits,
                 curves=curves, ensemble_fits=ens)

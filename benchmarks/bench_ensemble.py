@@ -1,0 +1,127 @@
+"""Ensemble throughput (docs/ensembles.md): two samples of a chain scene on two ranks
+(``mpirun -n 2 python -m parflow.shear scene --samples 2``) against the same two samples run
+one after the other on one rank (``--samples 2``, serial), against one sample alone
+(``--samples 1``) and against a plain run of the scene (no ensemble).
+
+    python benchmarks/bench_ensemble.py [--N 6000] [--V2 1e7]   # -> docs/benchmarks/ensemble.json
+
+Target (the ensemble issue): 2 samples on 2 ranks in <= 1.05x the wall time of one sample
+alone, i.e. >= 1.9x the throughput of running them one by one.  The two samples have
+different seeds, so their step counts differ: the comparison that does not depend on that is
+the throughput ratio (serial one-by-one wall / 2-rank wall, the same work).  The overhead per
+sample is the job's wall time minus the time inside the sample's own run loop
+(``wall_seconds`` of its file), and the ensemble's own cost is the K = 1 job's wall time
+minus the plain run's.  CPU seconds of each job (every rank) show the work apart from how
+the machine was shared.  The machine's load average is recorded: on 2 cores shared with other
+jobs the ranks do not get a core each.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import h5py
+
+import results
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+SCENE = """\
+title = "ensemble benchmark: chain N={N}, forward to <V^2> = {V2:g}"
+seed = 1
+[model]
+name = "chain"
+N = {N}
+epsilon = 0.1
+mu = 0
+[[protocol.leg]]
+direction = "forward"
+V2_above = {V2:g}
+"""
+
+
+CPU = []      # CPU seconds (user + system, every process of the job) of each timed command
+
+
+def timed(cmd) -> float:
+    """Wall seconds of ``cmd``; its CPU seconds (children's rusage, the ranks included: mpirun
+    waits for them) are appended to CPU."""
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.monotonic()
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    dt = time.monotonic() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    CPU.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
+    if res.returncode != 0:
+        sys.exit(f"bench_ensemble: {' '.join(cmd)} failed ({res.returncode}):\n{res.stderr}")
+    return dt
+
+
+def sample_info(folder: str, k: int) -> dict:
+    with h5py.File(os.path.join(folder, f"sample_{k:04d}.h5")) as f:
+        return dict(steps=int(f.attrs["steps"]), wall_seconds=float(f.attrs["wall_seconds"]),
+                    seed=int(f.attrs["sample_seed"]))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--N", type=int, default=6000)
+    ap.add_argument("--V2", type=float, default=1e7)
+    args = ap.parse_args()
+    py = sys.executable
+    mpirun = shutil.which("mpirun") or "mpirun"
+    d = tempfile.mkdtemp(prefix="bench_ensemble_")
+    try:
+        scene = os.path.join(d, "scene.toml")
+        with open(scene, "w") as fh:
+            fh.write(SCENE.format(N=args.N, V2=args.V2))
+        opts = ["--quiet", "--no-plots"]
+        shear = [py, "-m", "parflow.shear", scene]
+        load0 = os.getloadavg()
+        t_plain = timed(shear + ["--output", os.path.join(d, "plain.h5")] + opts)
+        t_one = timed(shear + ["--samples", "1", "--output", os.path.join(d, "one")] + opts)
+        t_serial = timed(shear + ["--samples", "2", "--output", os.path.join(d, "serial")] + opts)
+        t_two = timed([mpirun, "-n", "2"] + shear + ["--samples", "2", "--output",
+                                                     os.path.join(d, "two")] + opts)
+        load1 = os.getloadavg()
+        one = sample_info(os.path.join(d, "one"), 0)
+        serial = [sample_info(os.path.join(d, "serial"), k) for k in range(2)]
+        two = [sample_info(os.path.join(d, "two"), k) for k in range(2)]
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+    longest = max(s["wall_seconds"] for s in serial)
+    overhead_one = t_one - one["wall_seconds"]
+    data = dict(
+        date=time.strftime("%Y-%m-%d %H:%M"),
+        scene=dict(model="chain", N=args.N, V2_above=args.V2),
+        machine=dict(cores=os.cpu_count(), load_before=load0, load_after=load1),
+        plain_run=dict(job_seconds=t_plain, cpu_seconds=CPU[0]),
+        one_sample=dict(job_seconds=t_one, cpu_seconds=CPU[1], **one),
+        serial_two=dict(job_seconds=t_serial, cpu_seconds=CPU[2], samples=serial),
+        two_ranks_two=dict(job_seconds=t_two, cpu_seconds=CPU[3], samples=two),
+        throughput_ratio=t_serial / t_two,
+        wall_ratio_vs_longest_sample=t_two / (overhead_one + longest),
+        overhead_per_sample_seconds=overhead_one,
+        ensemble_machinery_seconds=t_one - t_plain,
+        target=dict(throughput_ratio_at_least=1.9, wall_ratio_at_most=1.05),
+    )
+    out = results.write("ensemble", data)
+    print(f"one sample alone {t_one:.1f} s ({one['steps']} steps, {one['wall_seconds']:.1f} s in "
+          f"the run loop); 2 samples one by one {t_serial:.1f} s; 2 samples on 2 ranks "
+          f"{t_two:.1f} s: throughput x{data['throughput_ratio']:.2f}, wall ratio against the "
+          f"longer sample alone {data['wall_ratio_vs_longest_sample']:.3f}; overhead per sample "
+          f"{overhead_one:.2f} s (the ensemble's own {t_one - t_plain:+.2f} s); CPU s: plain "
+          f"{CPU[0]:.1f}, one {CPU[1]:.1f}, serial two {CPU[2]:.1f}, 2 ranks two {CPU[3]:.1f}; load "
+          f"{load0[0]:.1f} -> {load1[0]:.1f}; wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
