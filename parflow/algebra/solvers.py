@@ -29,6 +29,9 @@ PRESETS = {
     # name: (refinement steps allowed, relative residual that triggers refinement)
     "direct": dict(max_refine=1, refine_above=1e-10),
     "accurate": dict(max_refine=4, refine_above=1e-14),
+    # no factorisation: deflated CG (algebra.deflated.DeflatedSolver; its own tolerances,
+    # -tau_defl_* options); these two fields apply to its auxiliary direct factor only
+    "deflated": dict(max_refine=1, refine_above=1e-10),
 }
 BACKWARD_ERROR_FAIL = 1e-8
 
@@ -52,7 +55,7 @@ AUTO_REPLICATED_MAX_NC = 2_000_000
 class SolverOptions:
     """The scene's [solver] table (``schema``)."""
     preset: str = key("direct", lambda v: v in PRESETS, f"one of {sorted(PRESETS)}",
-                      "refinement of the direct solve (docs/solvers.md)")
+                      "the force solve: direct with its refinement, or deflated CG (docs/solvers.md)")
     parallel: str = key("auto", lambda v: v in PARALLEL_FACTORS, f"one of {list(PARALLEL_FACTORS)}",
                         "how several ranks share the algebra")
     reuse_factor: str = key("auto", lambda v: v in REUSE_FACTOR, f"one of {list(REUSE_FACTOR)}",

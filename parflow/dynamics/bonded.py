@@ -19,6 +19,7 @@ import numpy as np
 from ..geometry import cell_at, pair_geometry
 from ..observables import stress
 from ..algebra.operators import RigidityOperators
+from ..algebra.deflated import force_solver
 from ..algebra.solvers import (REUSE_FACTOR, CholeskySolver, SingularOperator, SolveInfo, comm_self,
                                resolve_parallel)
 from ..state import State
@@ -66,6 +67,8 @@ def resolve_reuse(reuse: str, n_rows: int, preset: str, model_allows: bool) -> b
     """Whether the last force solve of a step reuses the step's factor (see evaluate)."""
     if reuse not in REUSE_FACTOR:
         raise ValueError(f"solver.reuse_factor must be one of {REUSE_FACTOR}, got {reuse!r}")
+    if preset == "deflated":
+        return False             # no factor to reuse: the deflated CG is its own iteration
     if reuse == "auto":
         return model_allows and preset == "direct" and n_rows >= REUSE_AUTO_MIN_NC
     return reuse == "on"
@@ -82,14 +85,24 @@ class BondedSystem:
         self.state = state
         bd = state.bonds
         self.parallel = resolve_parallel(parallel, len(bd), comm.getSize())
+        if preset == "deflated" and parallel == "auto" and comm.getSize() > 1:
+            # the deflated CG runs on the row-distributed N; a direct factor, when one is
+            # asked for (the spectra's shift-and-invert), is gathered and factorised by CHOLMOD
+            self.parallel = "redundant"
         # the communicator of the algebra: COMM_SELF when every rank holds the whole system
         if self.parallel == "replicated" and comm.getSize() > 1:
             comm = comm_self()
         self.comm = comm
         self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
-        self.tau_solver = CholeskySolver(self.ops.N, "tau_", preset, parallel)
+        # the preset chooses the solver: CHOLMOD/MUMPS Cholesky, or the deflated CG
+        # (algebra.deflated: no factorisation in a step)
+        self.tau_solver = force_solver(self.ops.N, "tau_", preset,
+                                       self.parallel if preset == "deflated" else parallel)
         self.tau_solver.norm_bound = self.ops.norm_bound
-        # The projection reuses the force factor (same N, no second factorisation).
+        if preset == "deflated":
+            self.tau_solver.set_factor(self.ops.S_at)     # N = S S^T: the accurate coarse solve
+        # The projection reuses the force solver (same N: no second factorisation; with the
+        # deflated preset, a deflated solve per projection iteration, to the same accuracy).
         self.proj_solver = self.tau_solver
         self._x = self.ops.tau.duplicate()   # solution of other solves with N
         self.n_factor = 0          # numeric (re)factorisations requested
