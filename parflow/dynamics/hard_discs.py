@@ -350,6 +350,7 @@ class Suspension:
                     steps=self.steps, collisions=self.collisions, max_overlap=self.max_overlap,
                     singular_events=self.singular_events,
                     infeasible_reductions=self.infeasible_reductions,
+                    upward_searches=self.upward_searches,
                     controls=dict(skin=self.skin, c=self.c, dmax=self.dmax, dg_max=self.dg_max,
                                   dg_min=self.dg_min, factor=self.factor,
                                   collision_gap=self.collision_gap,
@@ -369,4 +370,5 @@ class Suspension:
         sim.max_overlap = max(sim.max_overlap, float(ck["max_overlap"]))
         sim.singular_events = int(ck["singular_events"])
         sim.infeasible_reductions = int(ck.get("infeasible_reductions", 0))
+        sim.upward_searches = int(ck.get("upward_searches", 0))
         return sim
