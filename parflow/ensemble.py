@@ -30,8 +30,8 @@ it with --restart FOLDER).  A signal (SIGINT / SIGTERM, relayed by mpirun) stops
 the end of its step with a checkpoint, like a single run; no new sample is started.
 
 *Records.*  Each finished sample leaves ``FOLDER/.ensemble/sample_0007.json`` (its index,
-seed, status, message, steps, wall seconds; written whole by a rename); at the end world
-rank 0 writes the index ``FOLDER/ensemble.h5`` (``io.atomic_h5``: the scene, settings, rule,
+seed, status, message, steps, wall and CPU seconds of its group's rank 0; written whole by a
+rename); at the end world rank 0 writes the index ``FOLDER/ensemble.h5`` (``io.atomic_h5``: the scene, settings, rule,
 and one row per sample) and the statistics ``FOLDER/summary.h5`` (``post.ensemble``).
 
 *Restart* (``--restart FOLDER``): a sample whose file says complete, jammed or budget, or that
@@ -189,6 +189,7 @@ def _write_index(folder: str, attrs: dict, samples: int, records: dict, plan=Non
             f.create_dataset(name, data=np.array(vals, dtype=object), dtype=h5py.string_dtype())
         f["steps"] = np.array([int(r.get("steps", -1)) for r in rows], dtype=np.int64)
         f["wall_seconds"] = np.array([float(r.get("wall_seconds", np.nan)) for r in rows])
+        f["cpu_seconds"] = np.array([float(r.get("cpu_seconds", np.nan)) for r in rows])
 
 
 def _sample_file_state(path: str, n_legs: int, model: str) -> str:
@@ -302,12 +303,12 @@ def run_sample(group, folder: str, k: int, mode: str, base: dict, cmdline, max_s
                                base["settings"])
         scene["output"]["path"] = path
         collective(group, check_output_path, path, True)
-    t0 = time.monotonic()
+    t0, c0 = time.monotonic(), time.process_time()
     status = Run(scene, group, path, quiet=quiet, cmdline_options=cmdline,
                  restart=mode == "restart", max_steps=max_steps,
                  file_attrs=dict(sample=k, sample_seed=seed)).execute()
     return dict(sample=k, seed=seed, status=status, message="", steps=-1,
-                wall_seconds=time.monotonic() - t0)
+                wall_seconds=time.monotonic() - t0, cpu_seconds=time.process_time() - c0)
 
 
 def _from_file(rec: dict, path: str) -> dict:

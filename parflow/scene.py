@@ -63,8 +63,8 @@ class EnsembleOptions:
     """The scene's [ensemble] table (``schema``): many samples of the scene in one job
     (``parflow.ensemble``, docs/ensembles.md).  Here, not in ensemble.py: the schema sits
     below the run (layer 5)."""
-    samples: int = _key(0, *NON_NEGATIVE, "samples of the scene in one job (0: one run, no "
-                        "ensemble); --samples K overrides")
+    samples: int = _key(0, lambda v: 0 <= v <= 10**6, "0 .. 1000000", "samples of the scene "
+                        "in one job (0: one run, no ensemble); --samples K overrides")
     ranks_per_sample: int = _key(1, lambda v: v > 0, "> 0", "ranks of each sample's group "
                                  "(the job's ranks must be a multiple); --ranks-per-sample overrides")
 

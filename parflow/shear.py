@@ -145,8 +145,8 @@ def _run(args, petsc_args, PETSc) -> int:
                          "scene's output.path")
     if args.max_steps is not None and args.max_steps <= 0:
         raise InputError("--max-steps must be a positive integer")
-    if args.samples is not None and args.samples <= 0:
-        raise InputError("--samples must be a positive integer")
+    if args.samples is not None and not 0 < args.samples <= 10**6:
+        raise InputError("--samples must be a positive integer (at most 1000000)")
     if args.ranks_per_sample is not None and args.ranks_per_sample <= 0:
         raise InputError("--ranks-per-sample must be a positive integer")
     if args.restart and os.path.isdir(args.restart):

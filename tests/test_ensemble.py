@@ -18,7 +18,8 @@ from parflow.scene import load_scene
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from reference_runs import VOLATILE, flatten  # noqa: E402
 
-pytestmark = pytest.mark.serial_only      # each test launches its own processes
+# the tests that launch their own processes (mpirun inside) run on one rank only
+serial_only = pytest.mark.serial_only
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -137,6 +138,7 @@ def test_seed_rule():
         sample_text(SCENE.replace("seed = 5", "\"seed\" = 5"), 1)   # a quoted key
 
 
+@serial_only
 def test_serial_samples_record_index_and_seed(serial):
     with h5py.File(os.path.join(serial, "ensemble.h5")) as f:
         assert list(f["status"].asstr()[()]) == ["complete"] * 5
@@ -151,6 +153,7 @@ def test_serial_samples_record_index_and_seed(serial):
         assert not np.array_equal(f0["initial/s"][()], f1["initial/s"][()])
 
 
+@serial_only
 def test_two_samples_on_two_ranks_equal_serial(serial, tmp_path):
     res = shear(scene(tmp_path), "--samples", 2, "--output", tmp_path / "ens", "--quiet",
                 "--no-plots", mpi=2)
@@ -159,6 +162,7 @@ def test_two_samples_on_two_ranks_equal_serial(serial, tmp_path):
         assert_same(sample(tmp_path / "ens", k), sample(serial, k))
 
 
+@serial_only
 def test_queue_five_samples_on_three_groups(serial, tmp_path):
     """K = 5 on 3 ranks: a queue; every sample is the serial one, whoever ran it."""
     res = shear(scene(tmp_path), "--samples", 5, "--output", tmp_path / "ens", "--quiet",
@@ -169,6 +173,7 @@ def test_queue_five_samples_on_three_groups(serial, tmp_path):
     assert not os.path.exists(tmp_path / "ens" / ".claims")
 
 
+@serial_only
 def test_failing_sample_does_not_stop_the_others(serial, tmp_path):
     """Sample 1 raises mid-run (an exception no solver check expected): it is recorded as
     failed, the other samples run to the end (equal to the serial ones), the job exits 1
@@ -197,6 +202,7 @@ def test_failing_sample_does_not_stop_the_others(serial, tmp_path):
         assert f.attrs["status"] == "failed"
 
 
+@serial_only
 @pytest.mark.parametrize("mpi", [0, 2])
 def test_interrupted_ensemble_restarts(serial, tmp_path, mpi):
     """A stop (SIGTERM) in sample 1 at step 15: the job exits 143 with a checkpoint in
@@ -223,6 +229,7 @@ def test_interrupted_ensemble_restarts(serial, tmp_path, mpi):
         assert list(f["status"].asstr()[()]) == ["complete"] * 4
 
 
+@serial_only
 def test_summary_against_numpy(serial):
     """The summary's means, standard errors and counts, and its averaged <V^2> curve,
     recomputed from the sample files with numpy."""
@@ -280,6 +287,7 @@ def test_jamming_rate_poisson():
     assert r["n_jammed"] == 3 and r["value"] == 3 / 2.0 and np.isclose(r["poisson_err"], np.sqrt(3) / 2)
 
 
+@serial_only
 def test_plot_folder(serial, tmp_path):
     out = tmp_path / "figs"
     res = subprocess.run([sys.executable, "-m", "parflow.plot", str(serial), "--out", str(out)],
@@ -291,8 +299,11 @@ def test_plot_folder(serial, tmp_path):
 @pytest.mark.parametrize("args, fragment", [
     (("--samples", 2, "--ranks-per-sample", 2), "ranks_per_sample = 2 does not divide the job's 1 ranks"),
     (("--samples", 0), "--samples must be a positive integer"),
+    (("--samples", 10**9), "--samples must be a positive integer (at most 1000000)"),
+    (("--set", "ensemble.samples=-1"), "ensemble.samples = -1 is out of range"),
     (("--ranks-per-sample", 2), "--ranks-per-sample is for an ensemble"),
 ])
+@serial_only
 def test_bad_ensemble_arguments(tmp_path, args, fragment):
     res = shear(scene(tmp_path), "--output", tmp_path / "ens", *args)
     assert res.returncode == 2, res.stderr
@@ -301,6 +312,7 @@ def test_bad_ensemble_arguments(tmp_path, args, fragment):
     assert not (tmp_path / "ens").exists()
 
 
+@serial_only
 def test_existing_folder_and_bad_restart(tmp_path, serial):
     res = shear(scene(tmp_path), "--samples", 2, "--output", serial, "--no-plots")
     assert res.returncode == 2 and "holds an ensemble already" in res.stderr
@@ -313,3 +325,17 @@ def test_existing_folder_and_bad_restart(tmp_path, serial):
     assert res.returncode == 0, res.stderr
     assert sorted(os.listdir(tmp_path / "e2")).count("sample_0001.h5") == 1
     assert not (tmp_path / "e2" / "sample_0002.h5").exists()
+
+
+def test_split_world_groups():
+    """In process, on 1 or 2 ranks (mpirun -n 2 pytest): the world cut into groups of r."""
+    from parflow.algebra.comm import idle_barrier, max_over, split_world, world
+    w = world()
+    P, rank = w.getSize(), w.getRank()
+    for r in sorted({1, P}):
+        g, index, n = split_world(r)
+        assert g.getSize() == r and n == P // r and index == rank // r
+        assert g.getRank() == rank % r
+        assert max_over(w, rank) == P - 1
+        idle_barrier(w)
+    assert max_over(w, sample_seed(5, rank)) == max(sample_seed(5, k) for k in range(P))
