@@ -12,11 +12,14 @@ P = I - N W E^-1 W^T (DEF1 of Tang, Nabben, Vuik & Erlangga 2009):
 
 P N is symmetric positive semi-definite with the soft modes removed; it is solved by PETSc's
 CG (options prefix ``tau_``: ``-tau_ksp_*``, ``-tau_pc_*`` reach it) with a preconditioner
-built from N itself (default block Jacobi with ICC(0) blocks).  The coarse solve with E is
-exact however rough W is: W's accuracy changes the iteration count, never the result.  Every
-solve then checks the true residual b - N x and its backward error, refines when it is above
-the preset's level, and raises :class:`SolveError` naming the reason when CG does not
-converge (PETSc's reason and the iteration count).
+built from N itself (ICC(0) on one rank, block Jacobi with ICC(0) blocks on several).  With
+N = S S^T known (``set_factor``), E, W^T N y and the true residual b - S (S^T x) are formed
+from S^T, which keeps the soft mode's coefficient -- the one that carries sigma near
+jamming -- accurate to ~eps / sqrt(lambda_1) rather than eps ||N|| / lambda_1.  Every solve
+checks that residual, its backward error and the error along W, refines while they are above
+the preset's levels, and raises :class:`SolveError` naming the reason (PETSc's, the
+iterations) when CG does not converge.  W's accuracy changes the iteration count; the result
+only through the refinement's tolerances (tests/test_deflated.py).
 
 The deflation space: the k lowest eigenvectors of N from SLEPc (``spectrum.LowSpectrum``,
 options prefix ``tau_defl_``) at the first solve; afterwards refreshed without SLEPc, by one
@@ -31,14 +34,14 @@ import numpy as np
 from petsc4py import PETSc
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
+from ..errors import InputError
 from .solvers import (BACKWARD_ERROR_FAIL, PRESETS, CholeskySolver, SingularOperator, SolveError,
                       SolveInfo, set_from_options)
 
-# the deflated preset: number of deflation vectors, CG tolerances, the true residual that
-# triggers a refinement (a second deflated CG on the residual), the refresh rules
-# (rtol: CG's residual relative to ||b||; refine_above: the backward error that triggers a
-# refinement)
-# soft_tol: the error along the deflation space that triggers a refinement (solve())
+# the deflated preset (each overridable by -tau_defl_NAME): k deflation vectors; CG's rtol
+# (relative to ||b||) and max_it; refine_above, the backward error, and soft_tol, the error
+# along the deflation space, that trigger a refinement (a second deflated CG on the residual,
+# at most max_refine); the refresh rules (growth of the iterations, every n solves)
 DEFAULTS = dict(k=4, rtol=1e-13, max_it=10_000, refine_above=1e-16, max_refine=2,
                 soft_tol=1e-12, growth=1.5, refresh_every=0)
 # the direct solve reaches a backward error ||b - N x|| / (||N|| ||x|| + ||b||) of 3e-17 to
@@ -80,11 +83,18 @@ class DeflatedSolver:
         opt = dict(DEFAULTS)
         for name, default in DEFAULTS.items():
             get = db.getInt if isinstance(default, int) else db.getReal
-            opt[name] = get(f"{prefix}defl_{name}", default)
+            try:
+                opt[name] = get(f"{prefix}defl_{name}", default)
+            except PETSc.Error:
+                raise InputError(f"PETSc option -{prefix}defl_{name} "
+                                 f"{db.getString(prefix + 'defl_' + name, '')!r} of the deflated "
+                                 f"solver: not {'an integer' if isinstance(default, int) else 'a number'}"
+                                 ) from None
         if k is not None:
             opt["k"] = int(k)
-        if opt["k"] < 0 or opt["max_it"] < 1 or not opt["growth"] > 1:
-            raise ValueError(f"deflated solver: k >= 0, max_it >= 1, growth > 1 (got {opt})")
+        if opt["k"] < 0 or opt["max_it"] < 1 or opt["max_refine"] < 0 or not opt["growth"] > 1:
+            raise InputError(f"deflated solver options (-{prefix}defl_*): need k >= 0, max_it >= 1, "
+                             f"max_refine >= 0, growth > 1; got {opt}")
         self.opt = opt
         self.deflate = bool(deflate) and opt["k"] > 0
         self.k = opt["k"] if self.deflate else 0
