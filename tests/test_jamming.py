@@ -215,3 +215,22 @@ def test_larger_step_after_small_ones_fail():
     assert hd.min_gap(st) >= -1e-13           # the overlap did not grow
     sim.run(0.01)
     assert hd.min_gap(st) >= 0                # the shear opened the line
+
+
+def test_solver_failure_is_not_jamming(dense_state, monkeypatch):
+    """An LCP solver that fails at every step on a flowing packing: no certificate (the LP
+    finds none), larger steps tried, then a ContactSolveError (a SolveError: the driver's
+    status "failed", exit 1) -- never ShearJammed."""
+    from parflow.algebra.solvers import SolveError
+    sim = hd.Suspension(dense_state.copy())
+    sim.run(0.005)
+    g0 = sim.state.gamma
+
+    def broken(*a, **k):
+        raise co.LCPFailure("contact LCP: broken on purpose")
+    monkeypatch.setattr(hd, "solve_lcp", broken)
+    with pytest.raises(co.ContactSolveError, match="not proved infeasible") as ei:
+        sim.step()
+    assert isinstance(ei.value, SolveError) and not isinstance(ei.value, hd.ShearJammed)
+    assert "broken on purpose" in str(ei.value) and "certified = False" in str(ei.value)
+    assert sim.upward_searches == 1 and sim.state.gamma == g0
