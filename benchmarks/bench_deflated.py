@@ -83,9 +83,11 @@ def states(folder, n, top):
                       f"({time.perf_counter() - t:.0f} s)", flush=True)
             while F.sigma >= 10.0 ** level:
                 level += 1
+            if comm.getRank() == 0:       # after each decade: an interrupted run keeps them
+                np.savez(path + ".part.npz", **{k: np.array(v) for k, v in out.items()})
     eng.destroy()
     if comm.getRank() == 0:
-        np.savez(path, **{k: np.array(v) for k, v in out.items()})
+        os.replace(path + ".part.npz", path)
     comm.tompi4py().Barrier()
     return np.load(path)
 

@@ -42,7 +42,7 @@ from .solvers import (BACKWARD_ERROR_FAIL, PRESETS, CholeskySolver, SingularOper
 # (relative to ||b||) and max_it; refine_above, the backward error, and soft_tol, the error
 # along the deflation space, that trigger a refinement (a second deflated CG on the residual,
 # at most max_refine); the refresh rules (growth of the iterations, every n solves)
-DEFAULTS = dict(k=4, rtol=1e-13, max_it=10_000, refine_above=1e-16, max_refine=2,
+DEFAULTS = dict(k=4, rtol=1e-13, max_it=10_000, refine_above=4e-16, max_refine=2,
                 soft_tol=1e-12, growth=1.5, refresh_every=0)
 # the direct solve reaches a backward error ||b - N x|| / (||N|| ||x|| + ||b||) of 3e-17 to
 # 4e-17 (Nc = 7.8e3 to 1.9e6): a deflated solve that ends above this is a SolveError
