@@ -163,6 +163,21 @@ def test_two_samples_on_two_ranks_equal_serial(serial, tmp_path):
 
 
 @serial_only
+def test_groups_of_two_ranks(serial, tmp_path):
+    """ranks_per_sample = 2 on 2 ranks: one group, each sample on both ranks; the same samples
+    as on one rank to solver round-off (the chain's replicated solve: bit for bit here)."""
+    res = shear(scene(tmp_path), "--samples", 2, "--ranks-per-sample", 2, "--output",
+                tmp_path / "ens", "--quiet", "--no-plots", mpi=2)
+    assert res.returncode == 0, res.stderr
+    for k in range(2):
+        with h5py.File(sample(tmp_path / "ens", k)) as a, h5py.File(sample(serial, k)) as b:
+            assert a.attrs["n_ranks"] == 2 and a.attrs["sample_seed"] == b.attrs["sample_seed"]
+            for q in ("gamma", "sigma", "V2"):
+                np.testing.assert_allclose(a["timeseries"][q][()], b["timeseries"][q][()],
+                                           rtol=1e-10, atol=0)
+
+
+@serial_only
 def test_queue_five_samples_on_three_groups(serial, tmp_path):
     """K = 5 on 3 ranks: a queue; every sample is the serial one, whoever ran it."""
     res = shear(scene(tmp_path), "--samples", 5, "--output", tmp_path / "ens", "--quiet",
