@@ -34,6 +34,9 @@ seed, status, message, steps, wall and CPU seconds of its group's rank 0; writte
 rename); at the end world rank 0 writes the index ``FOLDER/ensemble.h5`` (``io.atomic_h5``: the scene, settings, rule,
 and one row per sample) and the statistics ``FOLDER/summary.h5`` (``post.ensemble``).
 
+The [ensemble] table (samples, ranks_per_sample) is ``scene.EnsembleOptions``, re-exported
+here: the scene schema sits below the run.
+
 *Restart* (``--restart FOLDER``): a sample whose file says complete, jammed or budget, or that
 is recorded as failed, is skipped; one whose file says running or interrupted and holds a
 checkpoint continues from it (the run file's restart: bit-identical to an uninterrupted run);

@@ -16,7 +16,7 @@ from parflow.errors import InputError
 from parflow.scene import load_scene
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from reference_runs import VOLATILE, flatten  # noqa: E402
+from reference_runs import flatten  # noqa: E402  (VOLATILE entries left out)
 
 # the tests that launch their own processes (mpirun inside) run on one rank only
 serial_only = pytest.mark.serial_only
