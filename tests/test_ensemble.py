@@ -37,6 +37,9 @@ V2_above = 300.0
 [[protocol.leg]]
 direction = "reverse"
 strain = 0.004
+[observables]
+analysis_quantity = "V2"
+analysis_per_decade = 2
 [output]
 path = "unused.h5"
 checkpoint_every = 10
@@ -288,6 +291,17 @@ def test_summary_against_numpy(serial):
             fit = dict(s["ensemble_fits/V2_forward_exponent"].attrs)
             assert np.isfinite(fit["value"]) and 0 < fit["jackknife_err"] < 1
             assert abs(fit["value"] + 3) < 1.5
+            # the profile C(n) at each sample's last forward analysis instant
+            C = s["curves/profile_C_n"]
+            last = []
+            for f in files:
+                fw_steps = f["timeseries"]["step"][()][f["timeseries"]["direction"][()] > 0]
+                steps = sorted(int(k) for k in f["analysis"] if int(k) <= fw_steps.max())
+                last.append(f["analysis"][f"{steps[-1]:08d}"]["C_n"][()])
+            last = np.array(last)
+            assert C["x"].size == last.shape[1]             # same N: the grid is n itself
+            assert np.allclose(C["mean"][()], last.mean(axis=0), rtol=1e-12, atol=1e-15)
+            assert np.allclose(C["sem"][()], last.std(axis=0, ddof=1) / np.sqrt(5), rtol=1e-9, atol=1e-15)
             jam = dict(s["ensemble_fits/jamming_rate"].attrs)      # none jammed here
             strain = sum(f["timeseries"]["strain"][-1] for f in files)
             assert jam["n_jammed"] == 0 and jam["value"] == 0 and np.isclose(jam["strain"], strain)

@@ -16,7 +16,10 @@ standard deviation, ddof = 1; NaN for n < 2) and the count n.
   range): ``sigma_leg{L}`` against the strain since the start of leg L (every model),
   ``V2_forward`` against gamma_c - gamma on the chain's forward leg (log grid, log-log
   interpolation), ``dsigma_dgamma_reverse`` (|dsigma/dgamma|, finite differences of
-  ``post.network.reverse_branch``) against sigma on a network's first reversed leg (log grid).
+  ``post.network.reverse_branch``) against sigma on a network's first reversed leg (log grid);
+  ``profile_NAME``: the model's profiles (:data:`PROFILES`: the chain's C(n) and point
+  response, the network's C(r) and point responses V(r), f(r)) at each sample's last analysis
+  instant on its first forward leg, on a linear grid.
 * ``ensemble_fits/NAME``: numbers fitted to the averaged curves, with jackknife errors
   (leave one sample out, refit: err^2 = (n - 1)/n sum_i (f_i - mean f_i)^2): the chain's
   <V^2> exponent against gamma_c - gamma; ``jamming_rate``, shear jams per unit strain with
@@ -34,7 +37,8 @@ import numpy as np
 
 from ..io import RunFile, atomic_h5, open_hdf5
 from .chain import chain_fits
-from .fits import BINS_PER_DECADE, fit_power_law, fit_window, forward_rows, reverse_rows
+from .fits import (BINS_PER_DECADE, fit_power_law, fit_window, forward_instants, forward_rows,
+                   reverse_rows)
 from .network import network_fits, reverse_branch
 
 SUMMARY_FORMAT = "parflow-ensemble-summary-1"
@@ -145,8 +149,9 @@ SKIP_FITS = ("theory", "mu", "model", "N", "seed", "path")   # constants, not me
 
 
 def _flatten(d, prefix="") -> dict:
-    """The finite numbers of a nested fits dict, by dotted name: a pair is (exponent,
-    prefactor) of a power law, or (lo, hi) of a ``window``; other tuples by position."""
+    """The finite numbers of a nested fits dict, by dotted name ('/' written '_over_', e.g.
+    ``lengths.dtheta2^-1_over_2.exponent``): a pair is (exponent, prefactor) of a power law,
+    or (lo, hi) of a ``window``; other tuples by position."""
     out = {}
     if isinstance(d, dict):
         items = [(k, v) for k, v in d.items() if not (prefix == "" and k in SKIP_FITS)]
@@ -155,7 +160,7 @@ def _flatten(d, prefix="") -> dict:
     else:
         items = enumerate(d)
     for k, v in items:
-        name = f"{prefix}{k}"
+        name = f"{prefix}{k}".replace("/", "_over_")      # an HDF5 name: no '/'
         if isinstance(v, (dict, tuple)):
             out.update(_flatten(v, name + "."))
         elif isinstance(v, (bool, np.bool_)):
@@ -242,6 +247,41 @@ def _network_curve(runs) -> dict:
                                           xscale="log", yscale="log")}
 
 
+# profiles at an analysis instant: model -> (array, its abscissa or None for the index, label)
+PROFILES = {
+    "chain": (("C_n", None, "C(n)"), ("tau_response", None, "point response |tau|(n)")),
+    "network": (("corr_C", "corr_r", "C(r)"), ("resp_V", "resp_r", "point response V(r)"),
+                ("resp_f", "resp_r", "point response f(r)")),
+}
+
+
+def _profile_curves(runs, model) -> dict:
+    """The model's profiles (C(r), the point response) at each sample's last analysis
+    instant on its first forward leg (the one nearest jamming), on a common linear grid."""
+    out = {}
+    for name, xname, label in PROFILES.get(model, ()):
+        xs, ys = [], []
+        for r in runs:
+            inst = [a for a in forward_instants(r) if name in a]
+            if not inst:
+                xs.append(None), ys.append(None)
+                continue
+            y = np.asarray(inst[-1][name], float)
+            x = np.arange(y.size, dtype=float) if xname is None else np.asarray(inst[-1][xname], float)
+            xs.append(x), ys.append(y)
+        have = [x for x in xs if x is not None and x.size >= 2]
+        if not have:
+            continue
+        grid = np.linspace(min(float(x.min()) for x in have), max(float(x.max()) for x in have),
+                           max(min(GRID_POINTS, max(x.size for x in have)), 2))
+        vals = np.array([on_grid(x, y, grid) if x is not None else np.full(grid.size, np.nan)
+                         for x, y in zip(xs, ys)])
+        out[f"profile_{name}"] = dict(x=grid, values=vals, ylabel=label,
+                                      xlabel="n (rods)" if xname is None else "r",
+                                      xscale="linear", yscale="linear")
+    return out
+
+
 def _chain_ensemble_fit(curve, runs) -> dict:
     """The <V^2> exponent fitted to the averaged forward curve (window: the last decades
     of gamma_c - gamma above 10 typical |dgamma|, as for one run), jackknife error."""
@@ -314,6 +354,7 @@ def summarise(folder: str) -> dict:
             curves.update(_chain_curve(rs))
         if model == "network":
             curves.update(_network_curve(rs))
+        curves.update(_profile_curves(rs, model))
     ens = {}
     if "V2_forward" in curves:
         ens.update(_chain_ensemble_fit(curves["V2_forward"], rs))
