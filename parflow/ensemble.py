@@ -158,7 +158,8 @@ def read_index(folder: str) -> dict:
     """The ensemble index FOLDER/ensemble.h5: its attributes and per-sample rows."""
     path = os.path.join(folder, "ensemble.h5")
     if not os.path.isfile(path):
-        raise InputError(f"{folder!r} is not an ensemble folder (no ensemble.h5 in it)")
+        raise InputError(f"{folder!r} is a directory, not a run file, and not an ensemble folder "
+                         f"(no ensemble.h5 in it): --restart takes a run file or an ensemble folder")
     try:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != INDEX_FORMAT:
