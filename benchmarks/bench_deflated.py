@@ -167,6 +167,9 @@ PCS = [("icc", "pc_type=icc"), ("jacobi", "pc_type=jacobi"),
        ("gamg", "pc_type=gamg"), ("hypre", "pc_type=hypre")]
 
 
+VARIANTS = dict(pcs=None, ks=(1, 4, 8, 20))    # set from the command line
+
+
 def variants(defl, F):
     """Preconditioners and k at one state: iterations and time per solve."""
     ops, out = defl.ops, []
@@ -174,7 +177,9 @@ def variants(defl, F):
     for case, (name, spec) in enumerate(PCS):
         if PETSc.COMM_WORLD.getSize() > 1 and name == "icc":
             continue                                   # serial only
-        for k in (1, 4, 8, 20):
+        if VARIANTS["pcs"] is not None and name not in VARIANTS["pcs"]:
+            continue
+        for k in VARIANTS["ks"]:
             if k != 8 and name not in ("icc", "bjacobi/icc", "jacobi"):
                 continue
             p = f"v{case}k{k}_"
@@ -206,8 +211,14 @@ def main():
     ap.add_argument("--top", type=float, default=1e8)
     ap.add_argument("--plain-max-it", type=int, default=20000)
     ap.add_argument("--variants", action="store_true", help="preconditioners and k at the top state")
+    ap.add_argument("--variants-only", action="store_true",
+                    help="only the variants at the top state, into the existing record")
+    ap.add_argument("--variant-pcs", default=None, help="comma-separated names from PCS")
+    ap.add_argument("--variant-ks", default="1,4,8,20")
     ap.add_argument("--folder", default=os.path.join("out", "bench_deflated"))
     args = ap.parse_args()
+    VARIANTS["pcs"] = None if args.variant_pcs is None else args.variant_pcs.split(",")
+    VARIANTS["ks"] = tuple(int(k) for k in args.variant_ks.split(","))
     comm = PETSc.COMM_WORLD
     rank, size = comm.getRank(), comm.getSize()
     os.makedirs(args.folder, exist_ok=True)
@@ -215,6 +226,17 @@ def main():
     network = os.path.join(args.folder, f"network_N{args.n}.h5")
     scene = load_scene(SCENE.format(n=args.n, network=network, top=args.top, folder=args.folder))
     state = get_model("network").build(scene["model"], 1)
+    if args.variants_only:
+        # the preconditioners and k at the top state only, merged into the existing record
+        m = len(S["sigma"]) - 1
+        row = at_state(state, S["s"][m], float(S["gamma"][m]), 0, extra=True)
+        if rank == 0:
+            with open(results.path("deflated")) as fh:
+                old = json.load(fh)
+            rec = next(r for r in old["records"] if r["n"] == args.n and r["ranks"] == size)
+            rec["rows"][-1]["variants"] = row["variants"]
+            results.write("deflated", old)
+        return
     rows = []
     for m in range(len(S["sigma"])):
         last = m == len(S["sigma"]) - 1
