@@ -85,9 +85,11 @@ class BondedSystem:
         self.state = state
         bd = state.bonds
         self.parallel = resolve_parallel(parallel, len(bd), comm.getSize())
-        if preset == "deflated" and parallel == "auto" and comm.getSize() > 1:
+        if preset == "deflated" and parallel == "auto" and self.parallel == "replicated" \
+                and comm.getSize() > 1:
             # the deflated CG runs on the row-distributed N; a direct factor, when one is
-            # asked for (the spectra's shift-and-invert), is gathered and factorised by CHOLMOD
+            # asked for (SLEPc's first space, the spectra's shift-and-invert), is gathered and
+            # factorised by CHOLMOD (beyond AUTO_REPLICATED_MAX_NC rows: MUMPS, as resolved)
             self.parallel = "redundant"
         # the communicator of the algebra: COMM_SELF when every rank holds the whole system
         if self.parallel == "replicated" and comm.getSize() > 1:
