@@ -7,6 +7,7 @@ import h5py
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from scipy.optimize import nnls
 
 from parflow import geometry
 from parflow.dynamics import hard_discs as hd
@@ -104,7 +105,6 @@ def test_mixed_sign_cluster_is_not_jammed():
             assert np.max(np.abs(f * w)) <= 100 * floor * max(1.0, f.max())
             # V = S^T f is unique (the LCP of a PSD N): against NNLS on the range of S
             v = np.linalg.lstsq(S.toarray(), q, rcond=None)[0]
-            from scipy.optimize import nnls
             f_ref = nnls(S.T.toarray(), -v)[0]
             np.testing.assert_allclose(S.T @ f, S.T @ f_ref, rtol=0, atol=1e-9 * scale)
 

@@ -53,6 +53,8 @@ MAX_GROWTH = 4.0
 # at small steps only: overlapping gaps weigh -h/dg; and a step may fail for the solver's
 # sake at one size and not at another)
 UPWARD_FACTOR = 4.0
+# an infeasible LCP retries the step at RETRY_FACTOR x its size
+RETRY_FACTOR = 0.1
 UPWARD_TRIES = 4
 
 
@@ -232,7 +234,7 @@ class Suspension:
                     self._failed(cert, tried, why)
                 dg = upward.pop(0)
                 continue
-            dg *= 0.5 if feasible else 0.1
+            dg *= 0.5 if feasible else RETRY_FACTOR
             if dg < self.dg_min and not feasible and tried[-1] > self.dg_min:
                 dg = self.dg_min            # the smallest step is tried before giving up
             if dg < self.dg_min:
