@@ -36,7 +36,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from ..errors import InputError
 from .solvers import (BACKWARD_ERROR_FAIL, PRESETS, CholeskySolver, SingularOperator, SolveError,
-                      SolveInfo, set_from_options)
+                      SolveInfo, reason_name, set_from_options, vec_norms)
 
 # the deflated preset (each overridable by -tau_defl_NAME): k deflation vectors; CG's rtol
 # (relative to ||b||) and max_it; refine_above, the backward error, and soft_tol, the error
@@ -274,7 +274,7 @@ class DeflatedSolver:
             self.r.setArray(ba - self.AW @ c)          # P b
         else:
             self.r.setArray(ba)
-        nb, npb = _norms(b, self.r)
+        nb, npb = vec_norms(b, self.r)
         # CG's test is relative to its right-hand side P b: make it relative to b
         self.cg.setTolerances(rtol=min(0.1, self._rtol * nb / max(npb, 1e-300)))
         x.set(0.0)
@@ -285,7 +285,7 @@ class DeflatedSolver:
                                    f"failed ({exc}); N is singular to working precision") from None
         reason, its = self.cg.getConvergedReason(), self.cg.getIterationNumber()
         if reason < 0:
-            name = _reason(reason)
+            name = reason_name(reason)
             where = (f"with {self.k_active} deflation vector(s)" if self.k_active
                      else "without deflation")
             if name in ("DIVERGED_PCSETUP_FAILED", "DIVERGED_PC_FAILED", "DIVERGED_NANORINF",
@@ -321,7 +321,7 @@ class DeflatedSolver:
         cb = self.coarse(self.WT(rhs.getArray(readonly=True))) if self.k_active else None
         while True:
             self._residual(rhs, x)
-            nr, nb, nx = _norms(self.r, rhs, x)
+            nr, nb, nx = vec_norms(self.r, rhs, x)
             rel = nr / nb if nb > 0 else nr
             berr = nr / (self.norm_bound * nx + nb) if nb > 0 else 0.0
             # the error along the deflation space, relative to x's part there: ||E^-1 W^T r||
@@ -417,20 +417,6 @@ class DeflatedSolver:
             self._direct.destroy()
             self._direct = None
 
-
-def _norms(*vecs) -> list[float]:
-    local = np.array([float(np.dot(a, a)) for a in (v.getArray(readonly=True) for v in vecs)])
-    comm = vecs[0].getComm()
-    if comm.getSize() > 1:
-        local = comm.tompi4py().allreduce(local)
-    return list(np.sqrt(local))
-
-
-def _reason(reason: int) -> str:
-    for k, v in vars(PETSc.KSP.ConvergedReason).items():
-        if v == reason and not k.startswith("_"):
-            return k
-    return str(reason)
 
 
 def force_solver(A: PETSc.Mat, prefix: str, preset: str, parallel: str):

@@ -310,7 +310,7 @@ class CholeskySolver:
                                    f"N is singular to working precision") from None
         reason = self.ksp.getConvergedReason()
         if reason < 0:
-            name = _reason_name(reason)
+            name = reason_name(reason)
             if name in ("DIVERGED_PCSETUP_FAILED", "DIVERGED_PC_FAILED", "DIVERGED_NANORINF"):
                 raise SingularOperator(f"{self.prefix}solve ({what}): the Cholesky factorisation "
                                        f"failed ({name}); N is singular to working precision")
@@ -331,7 +331,7 @@ class CholeskySolver:
         while True:
             self.A.mult(x, self.r)
             self.r.aypx(-1.0, rhs)              # r = rhs - A x
-            nr, nb, nx = _norms(self.r, rhs, x)
+            nr, nb, nx = vec_norms(self.r, rhs, x)
             rel = nr / nb if nb > 0 else nr
             if rel <= self.preset["refine_above"] or refinements >= self.preset["max_refine"]:
                 break
@@ -350,7 +350,7 @@ class CholeskySolver:
             o.destroy()
 
 
-def _norms(*vecs) -> list[float]:
+def vec_norms(*vecs) -> list[float]:
     """2-norms of several Vecs with one reduction."""
     local = np.array([float(np.dot(a, a)) for a in (v.getArray(readonly=True) for v in vecs)])
     comm = vecs[0].getComm()
@@ -359,7 +359,7 @@ def _norms(*vecs) -> list[float]:
     return list(np.sqrt(local))
 
 
-def _reason_name(reason: int) -> str:
+def reason_name(reason: int) -> str:
     for k, v in vars(PETSc.KSP.ConvergedReason).items():
         if v == reason and not k.startswith("_"):
             return k

@@ -118,6 +118,16 @@ class Heun:
             dg = min(dg, self.c.max_displacement / vmax)
         return min(dg, self.c.max_dgamma)
 
+    def trial(self, F0, dg: float, dg_cap: float | None, gamma: float, rejected: int) -> float:
+        """The trial step: ``dg`` bounded (:meth:`bound`, ``dg_cap``); Jammed below min_dgamma."""
+        dg = self.bound(F0, dg)
+        if dg_cap is not None:
+            dg = min(dg, dg_cap)
+        if dg < self.c.min_dgamma:
+            raise Jammed(f"step size fell below min_dgamma = {self.c.min_dgamma:g} at gamma = "
+                         f"{gamma:.12g} after {rejected} rejected steps: the system has jammed")
+        return dg
+
     def step(self, s, gamma, F0, direction: int, dg: float, dg_cap: float | None = None) -> StepResult:
         """One accepted step from (s, gamma) with force F0; ``dg`` is the proposed magnitude,
         ``dg_cap`` an upper bound for this step (e.g. the end of a leg)."""
@@ -126,12 +136,7 @@ class Heun:
         k0 = F0.ds
         nV0 = _norm(F0.V_na)
         while True:
-            dg = self.bound(F0, dg)
-            if dg_cap is not None:
-                dg = min(dg, dg_cap)
-            if dg < c.min_dgamma:
-                raise Jammed(f"step size fell below min_dgamma = {c.min_dgamma:g} at gamma = "
-                             f"{gamma:.12g} after {rejected} rejected steps: the system has jammed")
+            dg = self.trial(F0, dg, dg_cap, gamma, rejected)
             h = direction * dg
             try:
                 F1 = sysm.evaluate(s + h * k0, gamma + h, what="predictor")

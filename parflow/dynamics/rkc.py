@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from ..algebra.solvers import SingularOperator
-from .heun import INTEGRATORS, Heun, Jammed, StepResult
+from .heun import INTEGRATORS, Heun, StepResult
 
 EPS_DAMP = 2.0 / 13.0        # damping of the Chebyshev polynomial (stability margin)
 SAFETY = 1.2                 # on the spectral-radius estimate
@@ -121,12 +121,7 @@ class RKC(Heun):
         rejected = 0
         nV0 = float(np.sqrt(np.einsum("id,id->", F0.V_na, F0.V_na)))
         while True:
-            dg = self.bound(F0, dg)
-            if dg_cap is not None:
-                dg = min(dg, dg_cap)
-            if dg < c.min_dgamma:
-                raise Jammed(f"step size fell below min_dgamma = {c.min_dgamma:g} at gamma = "
-                             f"{gamma:.12g} after {rejected} rejected steps: the system has jammed")
+            dg = self.trial(F0, dg, dg_cap, gamma, rejected)
             if self.rho is None or self.since >= REFRESH or rejected or dg > 1.5 * self.rho_dg:
                 try:
                     self.rho = self.spectral_radius(s, gamma, F0)

@@ -20,8 +20,7 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -30,8 +29,8 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 
-from ..io import RunFile
 from ..errors import InputError
+from ..post.runs import Run, load
 
 
 class RunFileError(Exception):
@@ -45,54 +44,17 @@ class Skip(Exception):
 # ---------------------------------------------------------------------------------------
 # Reading (through io.RunFile, the one reader of the format)
 # ---------------------------------------------------------------------------------------
-@dataclass
-class Run:
-    """The parts of a run file that the figures and fits use, read into memory."""
-    path: str
-    attrs: dict
-    model: str
-    model_attrs: dict
-    scene: dict
-    ts: dict                                        # name -> 1-D array
-    analysis: list = field(default_factory=list)    # dicts: attrs + arrays + "direction"
-
-    def param(self, name, default=None):
-        """A [model] parameter of the scene (e.g. mu, N)."""
-        return self.scene.get("model", {}).get(name, default)
-
-
 def load_run(path: str) -> Run:
-    """Read a parflow run file (``io.RunFile``) into a :class:`Run`.  Raises
-    :class:`RunFileError` with a one-line message.
-
-    The timeseries are cut to their common length; each analysis instant gets the
-    ``direction``, ``leg`` and ``row`` of its timeseries row."""
+    """Read a parflow run file (``post.runs.load``, through ``io.RunFile``) into a
+    :class:`Run`.  Raises :class:`RunFileError` with a one-line message."""
     if not os.path.exists(path):
         raise RunFileError(f"{path}: no such file")
     if os.path.isdir(path):
         raise RunFileError(f"{path}: is a directory, not a parflow run file")
     try:
-        rf = RunFile(path)
+        return load(path)
     except InputError as exc:
         raise RunFileError(f"{path}: not a parflow run file ({exc})") from None
-    with rf:
-        attrs = rf.attrs
-        try:
-            scene = tomllib.loads(rf.scene_text)
-        except tomllib.TOMLDecodeError:
-            scene = {}
-        model = rf.model or str(scene.get("model", {}).get("name", ""))
-        model_attrs, ts, analysis = rf.model_attrs, rf.timeseries(), rf.analyses()
-    if "step" in ts and len(ts["step"]):          # tag each instant with its row
-        steps = ts["step"]
-        for a in analysis:
-            rows = np.nonzero(steps == a["step"])[0]
-            if rows.size:
-                r = rows[-1]
-                a.setdefault("direction", int(ts["direction"][r]) if "direction" in ts else 1)
-                a.setdefault("leg", int(ts["leg"][r]) if "leg" in ts else 0)
-                a["row"] = int(r)
-    return Run(path, attrs, model, model_attrs, scene, ts, analysis)
 
 
 # ---------------------------------------------------------------------------------------

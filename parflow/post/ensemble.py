@@ -30,16 +30,15 @@ from __future__ import annotations
 import math
 import os
 import re
-import tomllib
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..io import RunFile, atomic_h5, open_hdf5
+from ..io import atomic_h5, open_hdf5
 from .chain import chain_fits
 from .fits import (BINS_PER_DECADE, fit_power_law, fit_window, forward_instants, forward_rows,
                    reverse_rows)
 from .network import network_fits, reverse_branch
+from .runs import Run, load
 
 SUMMARY_FORMAT = "parflow-ensemble-summary-1"
 DONE = ("complete", "jammed", "budget")
@@ -48,40 +47,9 @@ FITS = {"chain": chain_fits, "network": network_fits}
 FINAL_COLUMNS = ("gamma", "strain", "sigma", "V2", "step")
 
 
-@dataclass
-class SampleRun:
-    """One sample file read into memory, shaped like ``parflow.plot.load_run``'s Run (what
-    the fits of :mod:`parflow.post` take)."""
-    path: str
-    attrs: dict
-    model: str
-    model_attrs: dict
-    scene: dict
-    ts: dict
-    analysis: list = field(default_factory=list)
-
-    def param(self, name, default=None):
-        return self.scene.get("model", {}).get(name, default)
-
-
-def load_sample(path: str) -> SampleRun:
-    with RunFile(path) as rf:
-        attrs = rf.attrs
-        try:
-            scene = tomllib.loads(rf.scene_text)
-        except tomllib.TOMLDecodeError:
-            scene = {}
-        model = rf.model or str(scene.get("model", {}).get("name", ""))
-        model_attrs, ts, analysis = rf.model_attrs, rf.timeseries(), rf.analyses()
-    if "step" in ts and len(ts["step"]):
-        for a in analysis:
-            rows = np.nonzero(ts["step"] == a["step"])[0]
-            if rows.size:
-                r = rows[-1]
-                a.setdefault("direction", int(ts["direction"][r]) if "direction" in ts else 1)
-                a.setdefault("leg", int(ts["leg"][r]) if "leg" in ts else 0)
-                a["row"] = int(r)
-    return SampleRun(path, attrs, model, model_attrs, scene, ts, analysis)
+# one sample file in memory: post.runs.Run, read by post.runs.load
+SampleRun = Run
+load_sample = load
 
 
 def sample_files(folder: str) -> list[tuple[int, str]]:
