@@ -39,6 +39,8 @@ SAFETY = 1.2                 # on the spectral-radius estimate
 REFRESH = 20                 # steps between spectral-radius estimates
 MAX_STAGES = 200
 POWER_ITERS = 6
+BOOST_MAX = 64.0
+BOOST_RELAX = 0.98
 
 
 def rkc_coefficients(s: int):
@@ -81,17 +83,20 @@ class RKC(Heun):
         self.rho_dg = 0.0            # the largest step it was estimated for
         self.v = None                # its eigenvector (warm start)
         self.since = 0
+        self.boost = 1.0             # on rho: doubled by a rejection, relaxed by accepted steps
         self.evaluations = 0
 
     def memory(self) -> tuple[dict, dict]:
         if self.rho is None:
             return {}, {}
-        return dict(rkc_v=self.v), dict(rkc_rho=self.rho, rkc_rho_dg=self.rho_dg, rkc_since=self.since)
+        return dict(rkc_v=self.v), dict(rkc_rho=self.rho, rkc_rho_dg=self.rho_dg, rkc_since=self.since,
+                                        rkc_boost=self.boost)
 
     def recall(self, ck: dict) -> None:
         if "rkc_rho" in ck:
             self.rho, self.rho_dg = float(ck["rkc_rho"]), float(ck["rkc_rho_dg"])
             self.since, self.v = int(ck["rkc_since"]), np.array(ck["rkc_v"], dtype=float)
+            self.boost = float(ck.get("rkc_boost", 1.0))
 
     def _F(self, s, gamma, what):
         self.evaluations += 1
@@ -128,7 +133,7 @@ class RKC(Heun):
                 except SingularOperator:
                     self.rho = self.rho or 0.0
                 self.rho_dg, self.since = dg, 0
-            n_st = stages_for(dg, self.rho)
+            n_st = stages_for(dg, self.rho * self.boost)
             h = direction * dg
             try:
                 Ys, F1 = self._stages(s, gamma, F0, h, n_st)
@@ -142,6 +147,10 @@ class RKC(Heun):
             err = float(np.linalg.norm(r_est)) / scale if scale > 0 else 0.0
             if not np.isfinite(err) or err > c.tol:
                 rejected += 1
+                # a power iteration approaches rho from below, slowly where the top of the
+                # spectrum is dense (a long chain: a diffusion): a rejection may be an unstable
+                # step, so the next stage count assumes a twice larger rho
+                self.boost = min(self.boost * 2.0, BOOST_MAX)
                 dg *= max(0.2, 0.8 * math.sqrt(c.tol / err)) if np.isfinite(err) and err > 0 else 0.25
                 continue
             try:
@@ -152,6 +161,7 @@ class RKC(Heun):
                 dg *= 0.25
                 continue
             self.since += 1
+            self.boost = max(1.0, self.boost * BOOST_RELAX)
             self.err_prev = err
             grow = min(4.0, max(0.2, 0.8 * math.sqrt(c.tol / err))) if err > 0 else 4.0
             if rejected:
