@@ -59,15 +59,13 @@ class Euler(heun.Heun):
     like every bonded step.  (First order: an example, not a preset.)"""
 
     def step(self, s, gamma, F0, direction, dg, dg_cap=None):
-        sysm, c = self.system, self.c
         dg = self.bound(F0, dg)
         if dg_cap is not None:
             dg = min(dg, dg_cap)
         s1 = s + direction * dg * F0.ds
         g1 = gamma + direction * dg
-        s1, proj_iter, length_error = sysm.project(s1, g1, tol=c.length_tol)
-        F1 = sysm.evaluate(s1, g1, what="Euler step")
-        err = heun._norm(F1.V_na - F0.V_na) / max(heun._norm(F0.V_na), heun._norm(F1.V_na), 1e-300)
+        s1, proj_iter, length_error, F1 = self.finish(s1, g1)
+        err = heun.vnorm(F1.V_na - F0.V_na) / max(heun.vnorm(F0.V_na), heun.vnorm(F1.V_na), 1e-300)
         return heun.StepResult(s1, g1, F1, direction * dg, dg * self.growth(err, 0), err, 0,
                                proj_iter, length_error)
 

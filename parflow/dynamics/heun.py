@@ -82,7 +82,8 @@ class StepResult:
     length_error: float
 
 
-def _norm(V):
+def vnorm(V) -> float:
+    """|V| over an (N, d) array of velocities."""
     return float(np.sqrt(np.einsum("id,id->", V, V)))
 
 
@@ -128,13 +129,20 @@ class Heun:
                          f"{gamma:.12g} after {rejected} rejected steps: the system has jammed")
         return dg
 
+    def finish(self, s_new, gamma_new):
+        """The end of every bonded step: ``s_new`` projected on the rod lengths (with the
+        factor loaded last) and the force there; (s, projection iterations, length error, F).
+        SingularOperator if either fails (the caller rejects the step)."""
+        s_new, it, lerr = self.system.project(s_new, gamma_new, tol=self.c.length_tol)
+        return s_new, it, lerr, self.system.evaluate(s_new, gamma_new, what="force", reuse=True)
+
     def step(self, s, gamma, F0, direction: int, dg: float, dg_cap: float | None = None) -> StepResult:
         """One accepted step from (s, gamma) with force F0; ``dg`` is the proposed magnitude,
         ``dg_cap`` an upper bound for this step (e.g. the end of a leg)."""
         sysm, c = self.system, self.c
         rejected = 0
         k0 = F0.ds
-        nV0 = _norm(F0.V_na)
+        nV0 = vnorm(F0.V_na)
         while True:
             dg = self.trial(F0, dg, dg_cap, gamma, rejected)
             h = direction * dg
@@ -144,16 +152,14 @@ class Heun:
                 rejected += 1
                 dg *= 0.25
                 continue
-            scale = max(nV0, _norm(F1.V_na))
-            err = _norm(F1.V_na - F0.V_na) / scale if scale > 0 else 0.0
+            scale = max(nV0, vnorm(F1.V_na))
+            err = vnorm(F1.V_na - F0.V_na) / scale if scale > 0 else 0.0
             if not np.isfinite(err) or err > c.tol:
                 rejected += 1
                 dg *= max(0.2, 0.9 * c.tol / err) if np.isfinite(err) else 0.25
                 continue
-            s_new = s + 0.5 * h * (k0 + F1.ds)
             try:
-                s_new, it, lerr = sysm.project(s_new, gamma + h, tol=c.length_tol)
-                F = sysm.evaluate(s_new, gamma + h, what="force", reuse=True)
+                s_new, it, lerr, F = self.finish(s + 0.5 * h * (k0 + F1.ds), gamma + h)
             except SingularOperator:
                 rejected += 1
                 dg *= 0.25

@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from ..algebra.solvers import SingularOperator
-from .heun import INTEGRATORS, Heun, StepResult
+from .heun import INTEGRATORS, Heun, StepResult, vnorm
 
 EPS_DAMP = 2.0 / 13.0        # damping of the Chebyshev polynomial (stability margin)
 SAFETY = 1.2                 # on the spectral-radius estimate
@@ -122,9 +122,9 @@ class RKC(Heun):
         return rho
 
     def step(self, s, gamma, F0, direction: int, dg: float, dg_cap: float | None = None) -> StepResult:
-        sysm, c = self.system, self.c
+        c = self.c
         rejected = 0
-        nV0 = float(np.sqrt(np.einsum("id,id->", F0.V_na, F0.V_na)))
+        nV0 = vnorm(F0.V_na)
         while True:
             dg = self.trial(F0, dg, dg_cap, gamma, rejected)
             if self.rho is None or self.since >= REFRESH or rejected or dg > 1.5 * self.rho_dg:
@@ -143,7 +143,7 @@ class RKC(Heun):
                 continue
             est = 0.8 * (s - Ys) + 0.4 * h * (F0.ds + F1.ds)
             r_est = est @ F1.h.T
-            scale = dg * max(nV0, float(np.sqrt(np.einsum("id,id->", F1.V_na, F1.V_na))))
+            scale = dg * max(nV0, vnorm(F1.V_na))
             err = float(np.linalg.norm(r_est)) / scale if scale > 0 else 0.0
             if not np.isfinite(err) or err > c.tol:
                 rejected += 1
@@ -154,8 +154,7 @@ class RKC(Heun):
                 dg *= max(0.2, 0.8 * math.sqrt(c.tol / err)) if np.isfinite(err) and err > 0 else 0.25
                 continue
             try:
-                s_new, it, lerr = sysm.project(Ys, gamma + h, tol=c.length_tol)
-                F = sysm.evaluate(s_new, gamma + h, what="force", reuse=True)
+                s_new, it, lerr, F = self.finish(Ys, gamma + h)
             except SingularOperator:
                 rejected += 1
                 dg *= 0.25
