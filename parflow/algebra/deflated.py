@@ -36,7 +36,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from ..errors import InputError
 from .solvers import (BACKWARD_ERROR_FAIL, PRESETS, CholeskySolver, SingularOperator, SolveError,
-                      SolveInfo, reason_name, set_from_options, vec_norms)
+                      SolveInfo, backward_error, reason_name, set_from_options, vec_norms)
 
 # the deflated preset (each overridable by -tau_defl_NAME): k deflation vectors; CG's rtol
 # (relative to ||b||) and max_it; refine_above, the backward error, and soft_tol, the error
@@ -323,7 +323,7 @@ class DeflatedSolver:
             self._residual(rhs, x)
             nr, nb, nx = vec_norms(self.r, rhs, x)
             rel = nr / nb if nb > 0 else nr
-            berr = nr / (self.norm_bound * nx + nb) if nb > 0 else 0.0
+            berr = backward_error(nr, nx, nb, self.norm_bound)
             # the error along the deflation space, relative to x's part there: ||E^-1 W^T r||
             # / ||E^-1 W^T b||.  The backward error hides it (near jamming an error 1e-8 in
             # the soft mode's coefficient leaves a residual lambda_1 1e-8 |x|: berr ~ 1e-17)

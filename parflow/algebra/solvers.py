@@ -338,7 +338,7 @@ class CholeskySolver:
             self._ksp_solve(self.r, self.dx, what)
             x.axpy(1.0, self.dx)
             refinements += 1
-        berr = nr / (self.norm_bound * nx + nb) if nb > 0 else 0.0
+        berr = backward_error(nr, nx, nb, self.norm_bound)
         if not np.isfinite(berr) or berr > BACKWARD_ERROR_FAIL:
             raise SingularOperator(f"{self.prefix}solve ({what}): backward error {berr:.2e} after "
                                    f"{refinements} refinement(s); N is singular to working precision")
@@ -357,6 +357,12 @@ def vec_norms(*vecs) -> list[float]:
     if comm.getSize() > 1:
         local = comm.tompi4py().allreduce(local)
     return list(np.sqrt(local))
+
+
+def backward_error(nr: float, nx: float, nb: float, norm_bound: float) -> float:
+    """Normwise backward error of a solve of N x = b: ||b - N x|| / (||N|| ||x|| + ||b||)
+    from the norms of the residual, x and b and a bound of ||N|| (0 for b = 0)."""
+    return nr / (norm_bound * nx + nb) if nb > 0 else 0.0
 
 
 def reason_name(reason: int) -> str:

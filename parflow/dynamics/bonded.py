@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..algebra.deflated import force_solver
+from ..algebra.operators import RigidityOperators
+from ..algebra.solvers import (REUSE_FACTOR, CholeskySolver, SingularOperator, SolveInfo,
+                               backward_error, comm_self, resolve_parallel)
 from ..geometry import cell_at, pair_geometry
 from ..observables import stress
-from ..algebra.operators import RigidityOperators
-from ..algebra.deflated import force_solver
-from ..algebra.solvers import (REUSE_FACTOR, CholeskySolver, SingularOperator, SolveInfo, comm_self,
-                               resolve_parallel)
 from ..state import State
 
 
@@ -185,7 +185,7 @@ class BondedSystem:
             x += (rz / pAp) * p
             r = rhs - A(x)
             nr = float(np.linalg.norm(r))
-            berr = nr / (norm_n * float(np.linalg.norm(x)) + nb) if nb > 0 else 0.0
+            berr = backward_error(nr, float(np.linalg.norm(x)), nb, norm_n)
             if berr <= REUSE_BERR:
                 self.n_reused += 1
                 return x, SolveInfo(0, nr / nb if nb > 0 else nr, berr, it)
