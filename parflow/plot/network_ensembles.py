@@ -1,0 +1,151 @@
+"""Figures of network ensembles across dz (docs/networks.md "Ensembles across dz"), from
+``parflow.post.network_across_ensembles``:
+
+* ``network_ensembles_across``   C, C2, omega*, l_c against dz: the ensemble mean with its
+                                 standard error, each sample (small grey dots), the weighted
+                                 power-law fit (exponent ± WLS error, bootstrap error) and
+                                 the predicted slope;
+* ``network_ensembles_reverse``  the ensemble-averaged reversed branch |dsigma/dgamma|
+                                 against sigma (``summary.h5`` curve ``dsigma_dgamma_reverse``,
+                                 mean ± standard error where every sample counts) and the same
+                                 divided by dz^(1/2) (collapse if C ~ dz^-1/2).
+
+``python -m parflow.plot.network_ensembles FOLDER... [--out DIR]`` (FOLDER as for
+``python -m parflow.post.network_across_ensembles``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ..post.ensemble import read_summary
+from ..post.network import REVERSE_SIGMA
+from ..post.network_across_ensembles import LC_SIGMA, analyse, format_table
+from .base import new_figure, reference
+from .network_across import _plain_log_ticks
+
+LABELS = {"C": "C  (−dσ/dγ̃ = σ²/C, reversed branch)",
+          "C2": "C₂ = median ω_min √σ  (σ ≥ 10³)",
+          "omega_star": "ω*  (gap of D(ω), γ = 0)",
+          "l_c": f"l_c  (point response, {LC_SIGMA[0]:g} ≤ σ ≤ {LC_SIGMA[1]:g})"}
+
+
+def _panel(ax, rows, fit, q, color, label_N):
+    dz = np.array([t["dz"] for t in rows])
+    m = np.array([t[q]["mean"] for t in rows])
+    e = np.array([t[q]["sem"] for t in rows])
+    for d, t in zip(dz, rows):
+        v = np.asarray(t[q]["values"], float)
+        ax.plot(np.full(v.size, d), v, ".", color="0.6", ms=3, zorder=1)
+    ok = np.isfinite(m)
+    ax.errorbar(dz[ok], m[ok], yerr=np.where(np.isfinite(e[ok]), e[ok], 0), fmt="o",
+                color=color, ms=5, capsize=3, zorder=3,
+                label=f"N = {label_N}: mean ± s.e. ({', '.join(str(t[q]['n']) for t in rows)})")
+    if np.isfinite(fit["exponent"]):
+        xs = np.geomspace(dz[ok].min() / 1.15, dz[ok].max() * 1.15, 20)
+        ax.plot(xs, fit["prefactor"] * xs ** fit["exponent"], "-", color=color, lw=1.5,
+                alpha=0.7, label=f"fit δz^({fit['exponent']:.2f} ± {fit['err']:.2f}; "
+                                 f"boot. ± {fit['boot_err']:.2f})")
+        xm = math.sqrt(dz[ok].min() * dz[ok].max())
+        reference(ax, xm, fit["prefactor"] * xm ** fit["exponent"] * 1.25, fit["predicted"],
+                  math.sqrt(dz[ok].max() / dz[ok].min()) * 1.1,
+                  f"predicted slope {fit['predicted']:+g}", color="0.3")
+
+
+def across_figure(res: dict) -> Figure:
+    """C, C2, omega*, l_c against dz for every N of ``res`` (``analyse``)."""
+    fig = new_figure(12.5, 9.5)
+    axes = fig.subplots(2, 2).ravel()
+    Ns = sorted({t["N"] for t in res["table"]})
+    for ax, q in zip(axes, ("C", "C2", "omega_star", "l_c")):
+        alldz = []
+        for k, N in enumerate(Ns):
+            rows = sorted((t for t in res["table"] if t["N"] == N), key=lambda t: t["dz"])
+            if not any(np.isfinite(t[q]["mean"]) for t in rows):
+                continue
+            _panel(ax, rows, res["across"][N][q], q, f"C{k}", N)
+            alldz += [t["dz"] for t in rows]
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        if alldz:
+            _plain_log_ticks(ax, alldz)
+        ax.set_xlabel(r"$\delta z = 2d - z$")
+        ax.set_ylabel(LABELS[q])
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    n = sum(t["n_samples"] for t in res["table"])
+    fig.suptitle(f"Network ensembles across δz: {len(res['table'])} ensembles, {n} networks "
+                 f"(grey: one network each)", fontsize=10)
+    return fig
+
+
+def reverse_figure(res: dict) -> Figure:
+    """The averaged reversed branches of the ensembles of ``res`` (their summary files)."""
+    fig = new_figure(13, 5.2)
+    ax, ax2 = fig.subplots(1, 2)
+    rows = sorted(res["table"], key=lambda t: (t["N"], t["dz"]))
+    k = 0
+    for t in rows:
+        path = os.path.join(t["folders"][0], "summary.h5")
+        if not os.path.isfile(path):
+            continue
+        c = read_summary(path)["curves"].get("dsigma_dgamma_reverse")
+        if c is None:
+            continue
+        x, m, e, n = c["x"], c["mean"], c["sem"], c["count"]
+        ok = np.isfinite(m) & (n == n.max()) & (m > 0)
+        lo = np.where(m - e > 0, m - e, m * 0.5)
+        col = f"C{k % 10}"
+        k += 1
+        for a_, s in ((ax, 1.0), (ax2, 1.0 / math.sqrt(t["dz"]))):
+            a_.fill_between(x[ok], lo[ok] * s, (m + e)[ok] * s, color=col, alpha=0.25, lw=0)
+            a_.plot(x[ok], m[ok] * s, "-", color=col, lw=1.3,
+                    label=f"N = {t['N']}, δz = {t['dz']:.3g} ({int(n.max())} networks)"
+                    if a_ is ax else None)
+    for a_ in (ax, ax2):
+        a_.set_xscale("log")
+        a_.set_yscale("log")
+        a_.axvspan(*REVERSE_SIGMA, color="0.93", zorder=0)
+        a_.set_xlabel(r"$\sigma$")
+        a_.grid(True, alpha=0.3)
+        reference(a_, 1e4, 1e4 ** 2 / 0.03 / 5 * (1 if a_ is ax else 1 / math.sqrt(0.2)), 2.0,
+                  30, "slope 2")
+    ax.set_ylabel(r"ensemble mean of $|d\sigma/d\tilde\gamma|$ (reversed leg)")
+    ax2.set_ylabel(r"$|d\sigma/d\tilde\gamma|\,/\,\delta z^{1/2}$")
+    ax.legend(fontsize=7)
+    ax2.legend(fontsize=7)
+    ax.set_title("mean ± standard error where every network counts (grey: C fit window)",
+                 fontsize=9)
+    ax2.set_title("collapse if C ∝ δz^−1/2", fontsize=9)
+    return fig
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m parflow.plot.network_ensembles",
+                                 description="Figures of network ensembles across dz")
+    ap.add_argument("folders", nargs="+", metavar="FOLDER")
+    ap.add_argument("--out", default=None, help="output folder (default: the first FOLDER)")
+    ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
+    args = ap.parse_args(argv)
+    res = analyse(args.folders)
+    if not res["table"]:
+        print("parflow.plot.network_ensembles: no network ensemble found", file=sys.stderr)
+        return 2
+    out = args.out or args.folders[0]
+    os.makedirs(out, exist_ok=True)
+    for name, draw in (("network_ensembles_across", across_figure),
+                       ("network_ensembles_reverse", reverse_figure)):
+        p = os.path.join(out, f"{name}.{args.format}")
+        draw(res).savefig(p, format=args.format)
+        print(p)
+    print("\n".join(format_table(res)), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,294 @@
+"""Network ensembles across dz (docs/networks.md "Ensembles across dz"): C(dz), C2(dz),
+omega*(dz) and l_c(dz), each as the mean over the networks (samples) of an ensemble with
+its standard error, and the exponents of their power laws in dz with errors propagated from
+the per-dz errors.
+
+Per sample (one network, one run file of an ensemble folder, ``parflow.ensemble``):
+
+* ``C``       C of the reversed branch, -dsigma/dgamma = sigma^2 / C, fitted over sigma in
+              ``post.network.REVERSE_SIGMA`` (:func:`post.network.fit_reverse_branch`);
+  ``a``       the exponent of -dsigma/dgamma ~ sigma^a over the same window (pred. 2);
+* ``C2``      the median of omega_min sqrt(sigma) over sigma >= ``post.network.C2_SIGMA_MIN``;
+* ``l_c``     the mean of the point response's fitted l_c over the analysis instants with
+              :data:`LC_SIGMA` [0] <= sigma <= [1] (both branches; as docs/networks.md Fig. 5);
+* ``omega_star`` the gap of D(omega) (:func:`post.network.omega_star_fits`), from the
+              sample's own spectra or, when the ensemble has none, from the sample with the
+              same index *and the same seed* of a companion ensemble of the same networks
+              (``runs/ensemble_network_gap_*.toml``: one dense spectrum at gamma = 0).
+
+Per dz (one ensemble; :func:`per_dz`): for each quantity the mean over the samples where it
+is finite, the standard error s / sqrt(n) (ddof = 1) and n.  A sample's value is one fit on
+one network; the mean's jackknife error (leave one network out) is exactly this standard
+error, so the fit errors inside a sample (far smaller than the scatter between networks:
+docs/networks.md) are not added.
+
+Across dz (:func:`fit_across`): y = A dz^p by weighted least squares of log(mean) on log dz,
+the weight of a point 1 / sigma_log^2 with sigma_log = sem / mean (``post.fits.
+fit_power_law_err``: the error of p from the covariance, times sqrt(chi2/dof) when that
+exceeds 1), and, as a check that does not assume Gaussian errors, a bootstrap over the
+networks: the samples of each dz redrawn with replacement :data:`N_BOOT` times (fixed seed),
+the means recomputed and refitted with the same weights; its error is the standard
+deviation of the refitted p.  Predictions: C ~ dz^-1/2, C2 ~ dz^1/2, omega* ~ dz,
+l_c ~ dz^-1/2 (:data:`PREDICTED`).
+
+``python -m parflow.post.network_across_ensembles FOLDER... [--json OUT]`` prints the
+table and the exponents; a FOLDER that is not an ensemble folder is searched one level down
+for ensemble folders (``out/network_ensembles`` holds ``z3.8/``, ``gap_z3.8/``, ...).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+import numpy as np
+
+from .ensemble import DONE, load_sample, mean_sem, sample_files
+from .fits import fit_power_law_err
+from .network import network_dz, network_fits, network_z
+
+LC_SIGMA = (10.0, 1e3)            # l_c: mean over the analysis instants in this sigma window
+N_BOOT = 1000                     # bootstrap resamples of the networks of each dz
+BOOT_SEED = 0
+QUANTITIES = ("C", "a", "C2", "omega_star", "l_c")
+PREDICTED = {"C": -0.5, "C2": 0.5, "omega_star": 1.0, "l_c": -0.5}
+
+
+# ---------------------------------------------------------------------------------------
+# one sample
+# ---------------------------------------------------------------------------------------
+def mean_l_c(response: dict | None, window: tuple = LC_SIGMA) -> float:
+    """The mean of the fitted l_c over the instants of ``post.network.response_fits`` with
+    window[0] <= sigma <= window[1] and a finite l_c (NaN if none)."""
+    if not response:
+        return float("nan")
+    v = [x["l_c"] for x in response["instants"]
+         if window[0] <= x["sigma"] <= window[1] and np.isfinite(x["l_c"])]
+    return float(np.mean(v)) if v else float("nan")
+
+
+def sample_values(fits: dict) -> dict:
+    """The per-sample numbers (:data:`QUANTITIES`) from ``post.network.network_fits``."""
+    rv, om, ost = fits.get("reverse", {}), fits.get("omega_min", {}), fits.get("omega_star", {})
+    return dict(C=float(rv.get("C", np.nan)), a=float(rv.get("slope", np.nan)),
+                C2=float(om.get("C2", np.nan)), omega_star=float(ost.get("omega_star", np.nan)),
+                l_c=mean_l_c(fits.get("response")))
+
+
+def read_ensemble(folder: str) -> dict:
+    """The samples of one ensemble folder that finished (complete, jammed, budget): their
+    index, seed, status, steps and :func:`sample_values`, and N, z, dz of the ensemble."""
+    rows = []
+    for k, path in sample_files(folder):
+        try:
+            r = load_sample(path)
+        except Exception:              # a damaged sample file does not enter (as the summary)
+            continue
+        status = str(r.attrs.get("status", ""))
+        if status not in DONE or r.model != "network":
+            continue
+        v = sample_values(network_fits(r))
+        rows.append(dict(sample=k, seed=int(r.attrs.get("sample_seed", -1)), status=status,
+                         steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0,
+                         N=int(r.param("N")), z=network_z(r), dz=network_dz(r),
+                         has_spectrum=any("omega" in a for a in r.analysis), **v))
+    return dict(folder=folder, samples=rows)
+
+
+def is_ensemble(folder: str) -> bool:
+    return os.path.isfile(os.path.join(folder, "ensemble.h5"))
+
+
+def find_ensembles(paths) -> list[str]:
+    """Ensemble folders among ``paths`` and, for a path that is not one, its sub-folders."""
+    out = []
+    for p in paths:
+        if is_ensemble(p):
+            out.append(p)
+        elif os.path.isdir(p):
+            out.extend(os.path.join(p, q) for q in sorted(os.listdir(p))
+                       if is_ensemble(os.path.join(p, q)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# per dz
+# ---------------------------------------------------------------------------------------
+def combine(ensembles: list[dict]) -> list[dict]:
+    """One entry per (N, dz): the samples of the ensembles with spectrum-free runs, with
+    omega* filled in from a companion ensemble (same N, dz) whose sample of the same index
+    has the same seed (the same network).  Ensembles made only of spectra (the companions)
+    give an entry of their own only if no other ensemble has their (N, dz)."""
+    groups: dict = {}
+    for e in ensembles:
+        if not e["samples"]:
+            continue
+        s0 = e["samples"][0]
+        key = (s0["N"], round(s0["dz"], 6))
+        groups.setdefault(key, []).append(e)
+    out = []
+    for (N, dz), es in sorted(groups.items()):
+        main = [e for e in es if any(np.isfinite(s["C"]) for s in e["samples"])]
+        spec = [e for e in es if any(s["has_spectrum"] for s in e["samples"])]
+        base = main[0] if main else es[0]
+        samples = [dict(s) for s in base["samples"]]
+        sources = [base["folder"]]
+        for e in spec:
+            if e is base:
+                continue
+            by = {s["sample"]: s for s in e["samples"]}
+            used = False
+            for s in samples:
+                o = by.get(s["sample"])
+                if o is not None and o["seed"] == s["seed"] and not np.isfinite(s["omega_star"]):
+                    s["omega_star"] = o["omega_star"]
+                    used = True
+            if used:
+                sources.append(e["folder"])
+        out.append(dict(N=N, dz=dz, z=base["samples"][0]["z"], folders=sources, samples=samples))
+    return out
+
+
+def per_dz(entry: dict) -> dict:
+    """Mean, standard error and count of each quantity over the entry's samples."""
+    out = dict(N=entry["N"], dz=entry["dz"], z=entry["z"], n_samples=len(entry["samples"]),
+               folders=entry["folders"])
+    for q in QUANTITIES:
+        v = np.array([s[q] for s in entry["samples"]], float)
+        m, e, n = mean_sem(v)
+        out[q] = dict(mean=float(m), sem=float(e), n=int(n), values=v.tolist())
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# across dz
+# ---------------------------------------------------------------------------------------
+def fit_across(dz, values: list, n_boot: int = N_BOOT, seed: int = BOOT_SEED,
+               predicted: float = float("nan")) -> dict:
+    """y = A dz^p across dz: ``values[i]`` the per-sample values at dz[i] (NaN ignored).
+
+    Weighted least squares of log(mean_i) on log(dz_i), weights (mean_i / sem_i)^2
+    (``fit_power_law_err``), and a bootstrap over the samples of each dz with those weights
+    held fixed.  Returns dict(exponent, err (WLS), boot_err, boot_p16, boot_p84, prefactor,
+    chi2, dof, n_dz, predicted, deviation = (p - predicted) / err).  Points with fewer than
+    two finite samples are left out (no error bar)."""
+    dz = np.asarray(dz, float)
+    vals = [np.asarray(v, float)[np.isfinite(np.asarray(v, float))] for v in values]
+    mean = np.array([v.mean() if v.size else np.nan for v in vals])
+    sem = np.array([v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else np.nan for v in vals])
+    use = np.isfinite(mean) & np.isfinite(sem) & (sem > 0) & (mean > 0) & (dz > 0)
+    out = dict(exponent=np.nan, err=np.nan, boot_err=np.nan, boot_p16=np.nan, boot_p84=np.nan,
+               prefactor=np.nan, chi2=np.nan, dof=0, n_dz=int(use.sum()),
+               predicted=float(predicted), deviation=np.nan, dz=dz.tolist(),
+               mean=mean.tolist(), sem=sem.tolist())
+    if use.sum() < 2:
+        return out
+    f = fit_power_law_err(dz[use], mean[use], sem[use])
+    out.update(exponent=f["exponent"], err=f["err"], prefactor=f["prefactor"], chi2=f["chi2"],
+               dof=f["dof"])
+    if np.isfinite(predicted) and f["err"] > 0:
+        out["deviation"] = (f["exponent"] - predicted) / f["err"]
+    if n_boot > 1:
+        X = np.log(dz[use])
+        w = (mean[use] / sem[use]) ** 2
+        A = np.column_stack([np.ones_like(X), X])
+        solve = np.linalg.solve(A.T @ (w[:, None] * A), (A * w[:, None]).T)   # 2 x n_dz
+        rng = np.random.default_rng(seed)
+        means = np.empty((n_boot, int(use.sum())))
+        for j, v in enumerate(v for v, u in zip(vals, use) if u):
+            means[:, j] = v[rng.integers(0, v.size, (n_boot, v.size))].mean(axis=1)
+        ok = np.all(means > 0, axis=1)
+        p = (np.log(means[ok]) @ solve.T)[:, 1]
+        if p.size > 1:
+            out.update(boot_err=float(np.std(p, ddof=1)), boot_p16=float(np.percentile(p, 16)),
+                       boot_p84=float(np.percentile(p, 84)))
+    return out
+
+
+def across(table: list[dict], n_boot: int = N_BOOT) -> dict:
+    """For each N: :func:`fit_across` of each quantity of :data:`PREDICTED` (and of ``a``,
+    the reversed-branch exponent, against dz: pred. 0, i.e. a = 2 at every dz)."""
+    out = {}
+    for N in sorted({t["N"] for t in table}):
+        rows = sorted((t for t in table if t["N"] == N), key=lambda t: t["dz"])
+        res = {}
+        for q in QUANTITIES:
+            pred = PREDICTED.get(q, 0.0)
+            res[q] = fit_across([t["dz"] for t in rows], [t[q]["values"] for t in rows],
+                                n_boot=n_boot, predicted=pred)
+        out[int(N)] = res
+    return out
+
+
+def analyse(paths, n_boot: int = N_BOOT) -> dict:
+    """The ensembles under ``paths``: the per-(N, dz) table and the fits across dz."""
+    ens = [read_ensemble(f) for f in find_ensembles(paths)]
+    table = [per_dz(e) for e in combine(ens)]
+    return dict(table=table, across=across(table, n_boot), lc_sigma=list(LC_SIGMA))
+
+
+# ---------------------------------------------------------------------------------------
+# report
+# ---------------------------------------------------------------------------------------
+def _pm(d: dict, digits: int = 4) -> str:
+    if not np.isfinite(d["mean"]):
+        return "—"
+    e = f" ± {d['sem']:.2g}" if np.isfinite(d["sem"]) else ""
+    return f"{d['mean']:.{digits}g}{e} ({d['n']})"
+
+
+def format_table(res: dict) -> list[str]:
+    """The per-dz table (markdown) and the exponents, as lines."""
+    lines = ["| N | z | dz | samples | C | a | C2 | omega* | l_c |", "|---" * 9 + "|"]
+    for t in res["table"]:
+        lines.append(f"| {t['N']} | {t['z']:.3g} | {t['dz']:.3g} | {t['n_samples']} | "
+                     + " | ".join(_pm(t[q]) for q in QUANTITIES) + " |")
+    lines.append("")
+    for N, fits in res["across"].items():
+        for q, f in fits.items():
+            if not np.isfinite(f["exponent"]):
+                continue
+            lines.append(f"N = {N}: {q} ~ dz^({f['exponent']:.3f} ± {f['err']:.3f} WLS, "
+                         f"± {f['boot_err']:.3f} bootstrap; 16-84 % {f['boot_p16']:.3f}.."
+                         f"{f['boot_p84']:.3f}) chi2/dof = {f['chi2']:.2f}/{f['dof']}, "
+                         f"{f['n_dz']} dz; predicted {f['predicted']:+g}: "
+                         f"{f['deviation']:+.1f} sigma")
+    return lines
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(float(x)) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m parflow.post.network_across_ensembles",
+                                 description="C, C2, omega*, l_c per dz over network "
+                                             "ensembles, and their power laws in dz")
+    ap.add_argument("folders", nargs="+", metavar="FOLDER",
+                    help="ensemble folders, or folders holding them")
+    ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
+    ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples ({N_BOOT})")
+    args = ap.parse_args(argv)
+    res = analyse(args.folders, args.boot)
+    if not res["table"]:
+        print("network_across_ensembles: no network ensemble found", file=sys.stderr)
+        return 2
+    print("\n".join(format_table(res)))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(_jsonable(res), fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
