@@ -31,7 +31,7 @@ response_rods = 2
 samples = 3
 [[protocol.leg]]
 direction = "forward"
-sigma_above = 3e4
+sigma_above = 1e6
 [[protocol.leg]]
 direction = "reverse"
 sigma_above = 1e7
@@ -107,9 +107,40 @@ def test_mean_l_c_window():
     assert math.isnan(nae.mean_l_c(None))
 
 
+def test_curve_C_and_its_jackknife_against_numpy():
+    rng = np.random.default_rng(4)
+    x = np.geomspace(10, 1e6, 60)
+    C = np.array([0.02, 0.03, 0.05, 0.04, 0.025])
+    vals = x ** 2 / C[:, None] * np.exp(0.05 * rng.standard_normal((5, x.size)))
+    vals[1, x > 3e5] = np.nan                 # a network that does not cover the top
+    vals[2, 3] = np.nan                       # nor one point below the window
+    got = nae.curve_C(dict(x=x, values=vals))
+    w = (x >= 1e3) & (x <= 1e5)
+
+    def c_of(rows):
+        return np.exp(np.mean(2 * np.log(x[w]) - np.log(rows[:, w].mean(axis=0))))
+    loo = np.array([c_of(np.delete(vals, i, axis=0)) for i in range(5)])
+    assert got["mean"] == pytest.approx(c_of(vals), rel=1e-12)
+    assert got["sem"] == pytest.approx(math.sqrt(4 / 5 * np.sum((loo - loo.mean()) ** 2)),
+                                       rel=1e-10)
+    assert got["n"] == 5
+    # the C of the mean curve is the harmonic mean of the C's (slope exactly 2, no noise)
+    exact = nae.curve_C(dict(x=x, values=x ** 2 / C[:, None]))
+    assert exact["mean"] == pytest.approx(1 / np.mean(1 / C), rel=1e-12)
+    assert math.isnan(nae.curve_C(None)["mean"])
+
+
+def test_fit_means_is_fit_across_without_bootstrap():
+    dz, vals = synthetic()
+    f = nae.fit_across(dz, vals, n_boot=0, predicted=-0.5)
+    g = nae.fit_means(dz, [v.mean() for v in vals],
+                      [v.std(ddof=1) / math.sqrt(v.size) for v in vals], -0.5)
+    assert g["exponent"] == f["exponent"] and g["err"] == f["err"]
+
+
 def _row(k, seed, **v):
     base = dict(sample=k, seed=seed, status="complete", steps=1, N=64, z=3.8, dz=0.2,
-                has_spectrum=False, C=np.nan, a=np.nan, C2=np.nan, omega_star=np.nan,
+                has_spectrum=False, C=np.nan, a=np.nan, C_hi=np.nan, C2=np.nan, omega_star=np.nan,
                 l_c=np.nan)
     return base | v
 
@@ -134,7 +165,7 @@ def test_combine_pairs_spectra_by_sample_and_seed():
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    """Three N = 128 networks forward to sigma = 3e4 and back, with the dense spectrum."""
+    """Three N = 128 networks forward to sigma = 1e6 and back, with the dense spectrum."""
     d = tmp_path_factory.mktemp("tiny")
     (d / "scene.toml").write_text(SCENE.format(spectrum="dense"))
     res = subprocess.run([sys.executable, "-m", "parflow.shear", str(d / "scene.toml"),
@@ -146,7 +177,8 @@ def tiny(tmp_path_factory):
 
 
 def _direct(path):
-    """C, C2 from the raw time series with numpy alone (docs/networks.md definitions)."""
+    """C (sigma in 1e3..1e5), C_hi (3e4..3e5), C2 from the raw time series with numpy alone
+    (docs/networks.md definitions)."""
     with h5py.File(path) as f:
         ts = f["timeseries"]
         d, s, x, w = (np.asarray(ts[k][()], float) for k in ("direction", "sigma", "strain",
@@ -154,11 +186,11 @@ def _direct(path):
     rev = np.nonzero(d < 0)[0]
     rev = rev[: np.argmax(np.diff(rev) > 1) + 1] if np.any(np.diff(rev) > 1) else rev
     xs, ss = x[rev] - x[rev[0]], s[rev]
-    m = (ss >= 1e3) & (ss <= 1e5)
-    C = 1.0 / np.polyfit(xs[m], 1.0 / ss[m], 1)[0]
+    C = [1.0 / np.polyfit(xs[m], 1.0 / ss[m], 1)[0]
+         for m in ((ss >= 1e3) & (ss <= 1e5), (ss >= 3e4) & (ss <= 3e5))]
     ok = np.isfinite(w) & (w > 0) & (s >= 1e3)
     C2 = float(np.median(w[ok] * np.sqrt(s[ok])))
-    return C, C2
+    return C[0], C[1], C2
 
 
 @pytest.mark.serial_only
@@ -170,7 +202,7 @@ def test_per_dz_against_numpy_on_sample_files(tiny):
     files = sorted(os.path.join(tiny, "z3.8", f) for f in os.listdir(tiny / "z3.8")
                    if f.startswith("sample_") and f.endswith(".h5"))
     direct = np.array([_direct(p) for p in files])
-    for j, q in enumerate(("C", "C2")):
+    for j, q in enumerate(("C", "C_hi", "C2")):
         v = direct[:, j]
         assert t[q]["values"] == pytest.approx(v.tolist(), rel=1e-9)
         assert t[q]["mean"] == pytest.approx(v.mean(), rel=1e-9)
@@ -178,6 +210,9 @@ def test_per_dz_against_numpy_on_sample_files(tiny):
     assert t["omega_star"]["n"] == 3 and 0 < t["omega_star"]["mean"] < 0.2
     assert np.isfinite(t["l_c"]["mean"]) and t["l_c"]["mean"] > 0
     assert all(np.isfinite(t["a"]["values"]))
+    assert t["C_curve"]["n"] == 3 and np.isfinite(t["C_curve"]["sem"])
+    # the C of the mean curve lies between the smallest and the largest C of the networks
+    assert min(t["C"]["values"]) / 2 < t["C_curve"]["mean"] < 2 * max(t["C"]["values"])
     lines = nae.format_table(res)
     assert lines[2].startswith("| 128 | 3.8 | 0.2")
 

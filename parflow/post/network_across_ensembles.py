@@ -8,6 +8,9 @@ Per sample (one network, one run file of an ensemble folder, ``parflow.ensemble`
 * ``C``       C of the reversed branch, -dsigma/dgamma = sigma^2 / C, fitted over sigma in
               ``post.network.REVERSE_SIGMA`` (:func:`post.network.fit_reverse_branch`);
   ``a``       the exponent of -dsigma/dgamma ~ sigma^a over the same window (pred. 2);
+  ``C_hi``    the same C fitted over sigma in :data:`HIGH_SIGMA`, nearer jamming (at
+              N = 40 000 the reversed branch follows sigma^2 with two different C above and
+              below a bump at sigma ~ 3e3-1e4: docs/networks.md Fig. 8);
 * ``C2``      the median of omega_min sqrt(sigma) over sigma >= ``post.network.C2_SIGMA_MIN``;
 * ``l_c``     the mean of the point response's fitted l_c over the analysis instants with
               :data:`LC_SIGMA` [0] <= sigma <= [1] (both branches; as docs/networks.md Fig. 5);
@@ -21,6 +24,13 @@ is finite, the standard error s / sqrt(n) (ddof = 1) and n.  A sample's value is
 one network; the mean's jackknife error (leave one network out) is exactly this standard
 error, so the fit errors inside a sample (far smaller than the scatter between networks:
 docs/networks.md) are not added.
+
+Also per dz, from the ensemble-averaged reversed branch (``summary.h5``'s curve
+``dsigma_dgamma_reverse``: |dsigma/dgamma| of each network on a common sigma grid):
+``C_curve``, the C of the mean curve, exp(mean over the grid points in ``REVERSE_SIGMA`` of
+log(sigma^2 / <|dsigma/dgamma|>)) (the sigma^2 law with its slope fixed at 2), with its
+jackknife error over the networks (:func:`curve_C`).  It weights the networks by their
+|dsigma/dgamma| (~1/C), the mean of the C's by C: the two differ when C scatters.
 
 Across dz (:func:`fit_across`): y = A dz^p by weighted least squares of log(mean) on log dz,
 the weight of a point 1 / sigma_log^2 with sigma_log = sem / mean (``post.fits.
@@ -45,15 +55,18 @@ import sys
 
 import numpy as np
 
-from .ensemble import DONE, load_sample, mean_sem, sample_files
+from .ensemble import DONE, _network_curve, jackknife, load_sample, mean_sem, sample_files
 from .fits import fit_power_law_err
-from .network import network_dz, network_fits, network_z
+from .network import REVERSE_SIGMA, network_dz, network_fits, network_reverse_fit, network_z
 
+HIGH_SIGMA = (3e4, 3e5)           # C_hi: the reversed-branch fit nearer jamming (N = 40 000:
+#                                   the law holds there and below 1e3, not across: networks.md)
 LC_SIGMA = (10.0, 1e3)            # l_c: mean over the analysis instants in this sigma window
 N_BOOT = 1000                     # bootstrap resamples of the networks of each dz
 BOOT_SEED = 0
-QUANTITIES = ("C", "a", "C2", "omega_star", "l_c")
-PREDICTED = {"C": -0.5, "C2": 0.5, "omega_star": 1.0, "l_c": -0.5}
+QUANTITIES = ("C", "a", "C_hi", "C2", "omega_star", "l_c")
+PREDICTED = {"C": -0.5, "C_hi": -0.5, "C_curve": -0.5, "C2": 0.5, "omega_star": 1.0,
+             "l_c": -0.5}
 
 
 # ---------------------------------------------------------------------------------------
@@ -70,17 +83,48 @@ def mean_l_c(response: dict | None, window: tuple = LC_SIGMA) -> float:
 
 
 def sample_values(fits: dict) -> dict:
-    """The per-sample numbers (:data:`QUANTITIES`) from ``post.network.network_fits``."""
+    """The per-sample numbers (:data:`QUANTITIES`) from ``post.network.network_fits`` (and
+    its ``reverse_hi``: ``network_reverse_fit`` over :data:`HIGH_SIGMA`, see
+    :func:`read_ensemble`)."""
     rv, om, ost = fits.get("reverse", {}), fits.get("omega_min", {}), fits.get("omega_star", {})
+    hi = fits.get("reverse_hi", {})
     return dict(C=float(rv.get("C", np.nan)), a=float(rv.get("slope", np.nan)),
+                C_hi=float(hi.get("C", np.nan)),
                 C2=float(om.get("C2", np.nan)), omega_star=float(ost.get("omega_star", np.nan)),
                 l_c=mean_l_c(fits.get("response")))
 
 
+def curve_C(curve: dict | None, window: tuple = REVERSE_SIGMA) -> dict:
+    """C of the ensemble-averaged reversed branch, ``curve`` = dict(x = the sigma grid,
+    values = |dsigma/dgamma| of each network on it, NaN outside its range): over the grid
+    points in ``window`` where every (kept) network counts, C = exp(mean(log(x^2 / m))),
+    m the mean over the networks; jackknife error over the networks (leave one out, refit).
+    Returns dict(mean, sem, n) (NaN when no grid point qualifies)."""
+    nan = dict(mean=float("nan"), sem=float("nan"), n=0)
+    if curve is None:
+        return nan
+    x, vals = np.asarray(curve["x"], float), np.atleast_2d(np.asarray(curve["values"], float))
+    w = (x >= window[0]) & (x <= window[1])
+    n = vals.shape[0]
+
+    def est(keep):
+        v = vals[keep][:, w]
+        ok = np.all(np.isfinite(v) & (v > 0), axis=0)
+        if not ok.any():
+            return float("nan")
+        m = v[:, ok].mean(axis=0)
+        return float(np.exp(np.mean(2.0 * np.log(x[w][ok]) - np.log(m))))
+    if n == 0 or not w.any():
+        return nan
+    value, err = jackknife(est, n)
+    return dict(mean=value, sem=err, n=int(n))
+
+
 def read_ensemble(folder: str) -> dict:
     """The samples of one ensemble folder that finished (complete, jammed, budget): their
-    index, seed, status, steps and :func:`sample_values`, and N, z, dz of the ensemble."""
-    rows = []
+    index, seed, status, steps and :func:`sample_values`, and N, z, dz of the ensemble;
+    ``C_curve`` (:func:`curve_C` of their averaged reversed branch)."""
+    rows, runs = [], []
     for k, path in sample_files(folder):
         try:
             r = load_sample(path)
@@ -89,12 +133,18 @@ def read_ensemble(folder: str) -> dict:
         status = str(r.attrs.get("status", ""))
         if status not in DONE or r.model != "network":
             continue
-        v = sample_values(network_fits(r))
+        fits = network_fits(r)
+        hi = network_reverse_fit(r, HIGH_SIGMA)
+        if hi is not None:
+            fits["reverse_hi"] = hi
+        v = sample_values(fits)
+        runs.append(r)
         rows.append(dict(sample=k, seed=int(r.attrs.get("sample_seed", -1)), status=status,
                          steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0,
                          N=int(r.param("N")), z=network_z(r), dz=network_dz(r),
                          has_spectrum=any("omega" in a for a in r.analysis), **v))
-    return dict(folder=folder, samples=rows)
+    curve = _network_curve(runs).get("dsigma_dgamma_reverse") if runs else None
+    return dict(folder=folder, samples=rows, C_curve=curve_C(curve))
 
 
 def is_ensemble(folder: str) -> bool:
@@ -147,7 +197,8 @@ def combine(ensembles: list[dict]) -> list[dict]:
                     used = True
             if used:
                 sources.append(e["folder"])
-        out.append(dict(N=N, dz=dz, z=base["samples"][0]["z"], folders=sources, samples=samples))
+        out.append(dict(N=N, dz=dz, z=base["samples"][0]["z"], folders=sources, samples=samples,
+                        C_curve=base.get("C_curve", dict(mean=np.nan, sem=np.nan, n=0))))
     return out
 
 
@@ -159,12 +210,32 @@ def per_dz(entry: dict) -> dict:
         v = np.array([s[q] for s in entry["samples"]], float)
         m, e, n = mean_sem(v)
         out[q] = dict(mean=float(m), sem=float(e), n=int(n), values=v.tolist())
+    out["C_curve"] = dict(entry.get("C_curve", dict(mean=np.nan, sem=np.nan, n=0)))
     return out
 
 
 # ---------------------------------------------------------------------------------------
 # across dz
 # ---------------------------------------------------------------------------------------
+def fit_means(dz, mean, sem, predicted: float = float("nan")) -> dict:
+    """y = A dz^p from per-dz values ``mean`` with errors ``sem`` (weighted least squares
+    as in :func:`fit_across`, no bootstrap: boot_* NaN)."""
+    dz, mean, sem = (np.asarray(a, float) for a in (dz, mean, sem))
+    use = np.isfinite(mean) & np.isfinite(sem) & (sem > 0) & (mean > 0) & (dz > 0)
+    out = dict(exponent=np.nan, err=np.nan, boot_err=np.nan, boot_p16=np.nan, boot_p84=np.nan,
+               prefactor=np.nan, chi2=np.nan, dof=0, n_dz=int(use.sum()),
+               predicted=float(predicted), deviation=np.nan, dz=dz.tolist(),
+               mean=mean.tolist(), sem=sem.tolist())
+    if use.sum() < 2:
+        return out
+    f = fit_power_law_err(dz[use], mean[use], sem[use])
+    out.update(exponent=f["exponent"], err=f["err"], prefactor=f["prefactor"], chi2=f["chi2"],
+               dof=f["dof"])
+    if np.isfinite(predicted) and f["err"] > 0:
+        out["deviation"] = (f["exponent"] - predicted) / f["err"]
+    return out
+
+
 def fit_across(dz, values: list, n_boot: int = N_BOOT, seed: int = BOOT_SEED,
                predicted: float = float("nan")) -> dict:
     """y = A dz^p across dz: ``values[i]`` the per-sample values at dz[i] (NaN ignored).
@@ -179,17 +250,9 @@ def fit_across(dz, values: list, n_boot: int = N_BOOT, seed: int = BOOT_SEED,
     mean = np.array([v.mean() if v.size else np.nan for v in vals])
     sem = np.array([v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else np.nan for v in vals])
     use = np.isfinite(mean) & np.isfinite(sem) & (sem > 0) & (mean > 0) & (dz > 0)
-    out = dict(exponent=np.nan, err=np.nan, boot_err=np.nan, boot_p16=np.nan, boot_p84=np.nan,
-               prefactor=np.nan, chi2=np.nan, dof=0, n_dz=int(use.sum()),
-               predicted=float(predicted), deviation=np.nan, dz=dz.tolist(),
-               mean=mean.tolist(), sem=sem.tolist())
+    out = fit_means(dz, mean, sem, predicted)
     if use.sum() < 2:
         return out
-    f = fit_power_law_err(dz[use], mean[use], sem[use])
-    out.update(exponent=f["exponent"], err=f["err"], prefactor=f["prefactor"], chi2=f["chi2"],
-               dof=f["dof"])
-    if np.isfinite(predicted) and f["err"] > 0:
-        out["deviation"] = (f["exponent"] - predicted) / f["err"]
     if n_boot > 1:
         X = np.log(dz[use])
         w = (mean[use] / sem[use]) ** 2
@@ -218,6 +281,8 @@ def across(table: list[dict], n_boot: int = N_BOOT) -> dict:
             pred = PREDICTED.get(q, 0.0)
             res[q] = fit_across([t["dz"] for t in rows], [t[q]["values"] for t in rows],
                                 n_boot=n_boot, predicted=pred)
+        res["C_curve"] = fit_means([t["dz"] for t in rows], [t["C_curve"]["mean"] for t in rows],
+                                   [t["C_curve"]["sem"] for t in rows], PREDICTED["C_curve"])
         out[int(N)] = res
     return out
 
@@ -241,10 +306,12 @@ def _pm(d: dict, digits: int = 4) -> str:
 
 def format_table(res: dict) -> list[str]:
     """The per-dz table (markdown) and the exponents, as lines."""
-    lines = ["| N | z | dz | samples | C | a | C2 | omega* | l_c |", "|---" * 9 + "|"]
+    cols = QUANTITIES + ("C_curve",)
+    lines = ["| N | z | dz | samples | " + " | ".join(cols) + " |",
+             "|---" * (4 + len(cols)) + "|"]
     for t in res["table"]:
         lines.append(f"| {t['N']} | {t['z']:.3g} | {t['dz']:.3g} | {t['n_samples']} | "
-                     + " | ".join(_pm(t[q]) for q in QUANTITIES) + " |")
+                     + " | ".join(_pm(t[q]) for q in cols) + " |")
     lines.append("")
     for N, fits in res["across"].items():
         for q, f in fits.items():
