@@ -177,7 +177,7 @@ def tiny(tmp_path_factory):
 
 
 def _direct(path):
-    """C (sigma in 1e3..1e5), C_hi (3e4..3e5), C2 from the raw time series with numpy alone
+    """C (sigma in 1e3..1e5), C_hi (1e4..1e5), C2 from the raw time series with numpy alone
     (docs/networks.md definitions)."""
     with h5py.File(path) as f:
         ts = f["timeseries"]
@@ -187,7 +187,7 @@ def _direct(path):
     rev = rev[: np.argmax(np.diff(rev) > 1) + 1] if np.any(np.diff(rev) > 1) else rev
     xs, ss = x[rev] - x[rev[0]], s[rev]
     C = [1.0 / np.polyfit(xs[m], 1.0 / ss[m], 1)[0]
-         for m in ((ss >= 1e3) & (ss <= 1e5), (ss >= 3e4) & (ss <= 3e5))]
+         for m in ((ss >= 1e3) & (ss <= 1e5), (ss >= 1e4) & (ss <= 1e5))]
     ok = np.isfinite(w) & (w > 0) & (s >= 1e3)
     C2 = float(np.median(w[ok] * np.sqrt(s[ok])))
     return C[0], C[1], C2

@@ -59,7 +59,7 @@ from .ensemble import DONE, _network_curve, jackknife, load_sample, mean_sem, sa
 from .fits import fit_power_law_err
 from .network import REVERSE_SIGMA, network_dz, network_fits, network_reverse_fit, network_z
 
-HIGH_SIGMA = (3e4, 3e5)           # C_hi: the reversed-branch fit nearer jamming (N = 40 000:
+HIGH_SIGMA = (1e4, 1e5)           # C_hi: the reversed-branch fit nearer jamming (N = 40 000:
 #                                   the law holds there and below 1e3, not across: networks.md)
 LC_SIGMA = (10.0, 1e3)            # l_c: mean over the analysis instants in this sigma window
 N_BOOT = 1000                     # bootstrap resamples of the networks of each dz
