@@ -141,7 +141,7 @@ def test_fit_means_is_fit_across_without_bootstrap():
 def _row(k, seed, **v):
     base = dict(sample=k, seed=seed, status="complete", steps=1, N=64, z=3.8, dz=0.2,
                 has_spectrum=False, C=np.nan, a=np.nan, C_hi=np.nan, C2=np.nan, omega_star=np.nan,
-                l_c=np.nan)
+                l_c=np.nan, gamma_j=np.nan)
     return base | v
 
 
@@ -181,8 +181,8 @@ def _direct(path):
     (docs/networks.md definitions)."""
     with h5py.File(path) as f:
         ts = f["timeseries"]
-        d, s, x, w = (np.asarray(ts[k][()], float) for k in ("direction", "sigma", "strain",
-                                                              "omega_min"))
+        d, s, x, w, g = (np.asarray(ts[k][()], float) for k in ("direction", "sigma", "strain",
+                                                                 "omega_min", "gamma"))
     rev = np.nonzero(d < 0)[0]
     rev = rev[: np.argmax(np.diff(rev) > 1) + 1] if np.any(np.diff(rev) > 1) else rev
     xs, ss = x[rev] - x[rev[0]], s[rev]
@@ -190,7 +190,7 @@ def _direct(path):
          for m in ((ss >= 1e3) & (ss <= 1e5), (ss >= 1e4) & (ss <= 1e5))]
     ok = np.isfinite(w) & (w > 0) & (s >= 1e3)
     C2 = float(np.median(w[ok] * np.sqrt(s[ok])))
-    return C[0], C[1], C2
+    return C[0], C[1], C2, g[np.argmax(d < 0) - 1]      # gamma_j: the last forward row
 
 
 @pytest.mark.serial_only
@@ -202,7 +202,7 @@ def test_per_dz_against_numpy_on_sample_files(tiny):
     files = sorted(os.path.join(tiny, "z3.8", f) for f in os.listdir(tiny / "z3.8")
                    if f.startswith("sample_") and f.endswith(".h5"))
     direct = np.array([_direct(p) for p in files])
-    for j, q in enumerate(("C", "C_hi", "C2")):
+    for j, q in enumerate(("C", "C_hi", "C2", "gamma_j")):
         v = direct[:, j]
         assert t[q]["values"] == pytest.approx(v.tolist(), rel=1e-9)
         assert t[q]["mean"] == pytest.approx(v.mean(), rel=1e-9)

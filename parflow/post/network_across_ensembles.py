@@ -17,7 +17,9 @@ Per sample (one network, one run file of an ensemble folder, ``parflow.ensemble`
 * ``omega_star`` the gap of D(omega) (:func:`post.network.omega_star_fits`), from the
               sample's own spectra or, when the ensemble has none, from the sample with the
               same index *and the same seed* of a companion ensemble of the same networks
-              (``runs/ensemble_network_gap_*.toml``: one dense spectrum at gamma = 0).
+              (``runs/ensemble_network_gap_*.toml``: one dense spectrum at gamma = 0);
+* ``gamma_j`` the strain at the end of the first forward leg (sigma = 1e6: near jamming;
+              no prediction: docs/networks.md measured gamma_j ~ 0.45 dz on 3 networks).
 
 Per dz (one ensemble; :func:`per_dz`): for each quantity the mean over the samples where it
 is finite, the standard error s / sqrt(n) (ddof = 1) and n.  A sample's value is one fit on
@@ -56,7 +58,7 @@ import sys
 import numpy as np
 
 from .ensemble import DONE, _network_curve, jackknife, load_sample, mean_sem, sample_files
-from .fits import fit_power_law_err
+from .fits import fit_power_law_err, forward_rows
 from .network import REVERSE_SIGMA, network_dz, network_fits, network_reverse_fit, network_z
 
 HIGH_SIGMA = (1e4, 1e5)           # C_hi: the reversed-branch fit nearer jamming (N = 40 000:
@@ -64,7 +66,7 @@ HIGH_SIGMA = (1e4, 1e5)           # C_hi: the reversed-branch fit nearer jamming
 LC_SIGMA = (10.0, 1e3)            # l_c: mean over the analysis instants in this sigma window
 N_BOOT = 1000                     # bootstrap resamples of the networks of each dz
 BOOT_SEED = 0
-QUANTITIES = ("C", "a", "C_hi", "C2", "omega_star", "l_c")
+QUANTITIES = ("C", "a", "C_hi", "C2", "omega_star", "l_c", "gamma_j")
 PREDICTED = {"C": -0.5, "C_hi": -0.5, "C_curve": -0.5, "C2": 0.5, "omega_star": 1.0,
              "l_c": -0.5}
 
@@ -89,7 +91,7 @@ def sample_values(fits: dict) -> dict:
     rv, om, ost = fits.get("reverse", {}), fits.get("omega_min", {}), fits.get("omega_star", {})
     hi = fits.get("reverse_hi", {})
     return dict(C=float(rv.get("C", np.nan)), a=float(rv.get("slope", np.nan)),
-                C_hi=float(hi.get("C", np.nan)),
+                C_hi=float(hi.get("C", np.nan)), gamma_j=float(fits.get("gamma_j", np.nan)),
                 C2=float(om.get("C2", np.nan)), omega_star=float(ost.get("omega_star", np.nan)),
                 l_c=mean_l_c(fits.get("response")))
 
@@ -134,6 +136,8 @@ def read_ensemble(folder: str) -> dict:
         if status not in DONE or r.model != "network":
             continue
         fits = network_fits(r)
+        fw = forward_rows(r)
+        fits["gamma_j"] = float(r.ts["gamma"][fw][-1]) if fw is not None else float("nan")
         hi = network_reverse_fit(r, HIGH_SIGMA)
         if hi is not None:
             fits["reverse_hi"] = hi
@@ -278,7 +282,7 @@ def across(table: list[dict], n_boot: int = N_BOOT) -> dict:
         rows = sorted((t for t in table if t["N"] == N), key=lambda t: t["dz"])
         res = {}
         for q in QUANTITIES:
-            pred = PREDICTED.get(q, 0.0)
+            pred = PREDICTED.get(q, 0.0 if q == "a" else float("nan"))
             res[q] = fit_across([t["dz"] for t in rows], [t[q]["values"] for t in rows],
                                 n_boot=n_boot, predicted=pred)
         res["C_curve"] = fit_means([t["dz"] for t in rows], [t["C_curve"]["mean"] for t in rows],
@@ -317,11 +321,12 @@ def format_table(res: dict) -> list[str]:
         for q, f in fits.items():
             if not np.isfinite(f["exponent"]):
                 continue
+            pred = (f"; predicted {f['predicted']:+g}: {f['deviation']:+.1f} sigma"
+                    if np.isfinite(f["predicted"]) else "")
             lines.append(f"N = {N}: {q} ~ dz^({f['exponent']:.3f} ± {f['err']:.3f} WLS, "
                          f"± {f['boot_err']:.3f} bootstrap; 16-84 % {f['boot_p16']:.3f}.."
                          f"{f['boot_p84']:.3f}) chi2/dof = {f['chi2']:.2f}/{f['dof']}, "
-                         f"{f['n_dz']} dz; predicted {f['predicted']:+g}: "
-                         f"{f['deviation']:+.1f} sigma")
+                         f"{f['n_dz']} dz{pred}")
     return lines
 
 
