@@ -123,3 +123,54 @@ def test_finite_size_limit():
     assert sol["T"][-1] * 8 * np.sin(np.pi / N) ** 2 * x == pytest.approx(1.0, rel=1e-3)
     assert _slope_at(sol, "V2", 1e-9) == pytest.approx(-1.0, abs=1e-3)
     np.testing.assert_allclose(sol["theta2"], 2 * sol["x"], rtol=1e-12)
+
+
+ENSEMBLE_SCENE = """
+title = "chain theory ensemble test"
+seed = 3
+[model]
+name = "chain"
+N = 100
+epsilon = 0.02
+mu = {mu}
+[integrator]
+method = "rkc"
+tol = 0.003
+[[protocol.leg]]
+direction = "forward"
+V2_above = 1e6
+[observables]
+analysis_quantity = "V2"
+analysis_per_decade = 2
+[output]
+path = "unused.h5"
+"""
+
+
+@pytest.mark.serial_only        # launches its own parflow.shear process
+@pytest.mark.parametrize("mu", [0, 2])
+def test_ensemble_against_theory(tmp_path, mu):
+    """plot.chain_theory.compare on a 3-sample ensemble at eps = 0.02 (linear): the samples'
+    mean <V^2> and <dtheta^2> equal the per-seed theory averaged, within 4 %, past the first
+    transient; its data exponents are the summary's (the same fit, the same windows)."""
+    import subprocess
+    import sys
+
+    from parflow.plot.chain_theory import compare
+    scene = tmp_path / "e.toml"
+    scene.write_text(ENSEMBLE_SCENE.format(mu=mu))
+    out = tmp_path / "ens"
+    subprocess.run([sys.executable, "-m", "parflow.shear", str(scene), "--samples", "3",
+                    "--output", str(out), "--quiet", "--no-plots"], check=True)
+    r = compare(str(out))
+    assert r["n_samples"] == 3
+    x = r["x"]
+    for q in ("V2", "dtheta2"):
+        m, s, n = r["data"][q]
+        tm = r["theory_sample"][q][0]
+        ok = (n == 3) & np.isfinite(tm) & (x < 0.5 * 0.02 ** 2 / 2)
+        assert ok.sum() > 10
+        np.testing.assert_allclose(m[ok], tm[ok], rtol=0.04)
+    fits = r["summary"]["fits"]["forward.attr.V2.exponent"]
+    e = r["exponents"]["V2"]["data"]
+    assert e["mean"] == pytest.approx(float(fits["mean"]), rel=1e-9)
