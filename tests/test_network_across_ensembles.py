@@ -232,3 +232,18 @@ def test_gap_scenes_build_the_networks_of_the_shear_scenes(z):
     assert [a["model"].get(k) for k in NETWORK_KEYS] == [b["model"].get(k) for k in NETWORK_KEYS]
     assert a["ensemble"]["samples"] >= 8 and b["ensemble"]["samples"] >= 8
     assert a["model"]["spectrum"] == "none" and b["model"]["spectrum"] == "dense"
+
+
+@pytest.mark.serial_only
+def test_figures_draw_the_ensemble_means(tiny, tmp_path):
+    from parflow.plot import network_ensembles as pne   # (matplotlib: only this test)
+    res = nae.analyse([str(tiny)], n_boot=0)
+    fig = pne.across_figure(res)
+    ax = fig.axes[0]                                     # the C panel
+    ys = np.concatenate([ln.get_ydata() for ln in ax.lines])
+    assert np.any(np.isclose(ys, res["table"][0]["C"]["mean"], rtol=1e-12))
+    fig = pne.reverse_figure(res)
+    assert len(fig.axes) == 3 and fig.axes[0].lines
+    assert pne.main([str(tiny), "--out", str(tmp_path)]) == 0
+    assert sorted(os.listdir(tmp_path)) == ["network_ensembles_across.png",
+                                            "network_ensembles_reverse.png"]
