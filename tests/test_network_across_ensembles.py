@@ -247,3 +247,11 @@ def test_figures_draw_the_ensemble_means(tiny, tmp_path):
     assert pne.main([str(tiny), "--out", str(tmp_path)]) == 0
     assert sorted(os.listdir(tmp_path)) == ["network_ensembles_across.png",
                                             "network_ensembles_reverse.png"]
+
+
+@pytest.mark.serial_only
+@pytest.mark.parametrize("z", ["3.9", "3.8", "3.7"])
+def test_N40000_scenes_are_valid(z):
+    from parflow.scene import load_scene   # (the scene schema: only these tests need it)
+    sc = load_scene(open(os.path.join(ROOT, "runs", f"ensemble_network_N40000_z{z}.toml")).read())
+    assert sc["model"]["N"] == 40000 and sc["ensemble"]["samples"] >= 3
