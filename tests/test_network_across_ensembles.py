@@ -140,7 +140,7 @@ def test_fit_means_is_fit_across_without_bootstrap():
 
 def _row(k, seed, **v):
     base = dict(sample=k, seed=seed, status="complete", steps=1, N=64, z=3.8, dz=0.2,
-                has_spectrum=False, C=np.nan, a=np.nan, C_hi=np.nan, C2=np.nan, omega_star=np.nan,
+                has_spectrum=False, C=np.nan, a=np.nan, C_hi=np.nan, a_hi=np.nan, C2=np.nan, omega_star=np.nan,
                 l_c=np.nan, gamma_j=np.nan)
     return base | v
 

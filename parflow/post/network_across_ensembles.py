@@ -10,7 +10,7 @@ Per sample (one network, one run file of an ensemble folder, ``parflow.ensemble`
   ``a``       the exponent of -dsigma/dgamma ~ sigma^a over the same window (pred. 2);
   ``C_hi``    the same C fitted over sigma in :data:`HIGH_SIGMA`, nearer jamming (at
               N = 40 000 the reversed branch follows sigma^2 with two different C above and
-              below a bump at sigma ~ 3e3-1e4: docs/networks.md Fig. 8);
+              below a bump at sigma ~ 3e3-1e4: docs/networks.md Fig. 8); ``a_hi`` its exponent;
 * ``C2``      the median of omega_min sqrt(sigma) over sigma >= ``post.network.C2_SIGMA_MIN``;
 * ``l_c``     the mean of the point response's fitted l_c over the analysis instants with
               :data:`LC_SIGMA` [0] <= sigma <= [1] (both branches; as docs/networks.md Fig. 5);
@@ -66,7 +66,7 @@ HIGH_SIGMA = (1e4, 1e5)           # C_hi: the reversed-branch fit nearer jamming
 LC_SIGMA = (10.0, 1e3)            # l_c: mean over the analysis instants in this sigma window
 N_BOOT = 1000                     # bootstrap resamples of the networks of each dz
 BOOT_SEED = 0
-QUANTITIES = ("C", "a", "C_hi", "C2", "omega_star", "l_c", "gamma_j")
+QUANTITIES = ("C", "a", "C_hi", "a_hi", "C2", "omega_star", "l_c", "gamma_j")
 PREDICTED = {"C": -0.5, "C_hi": -0.5, "C_curve": -0.5, "C2": 0.5, "omega_star": 1.0,
              "l_c": -0.5}
 
@@ -91,7 +91,7 @@ def sample_values(fits: dict) -> dict:
     rv, om, ost = fits.get("reverse", {}), fits.get("omega_min", {}), fits.get("omega_star", {})
     hi = fits.get("reverse_hi", {})
     return dict(C=float(rv.get("C", np.nan)), a=float(rv.get("slope", np.nan)),
-                C_hi=float(hi.get("C", np.nan)), gamma_j=float(fits.get("gamma_j", np.nan)),
+                C_hi=float(hi.get("C", np.nan)), a_hi=float(hi.get("slope", np.nan)), gamma_j=float(fits.get("gamma_j", np.nan)),
                 C2=float(om.get("C2", np.nan)), omega_star=float(ost.get("omega_star", np.nan)),
                 l_c=mean_l_c(fits.get("response")))
 
@@ -282,7 +282,7 @@ def across(table: list[dict], n_boot: int = N_BOOT) -> dict:
         rows = sorted((t for t in table if t["N"] == N), key=lambda t: t["dz"])
         res = {}
         for q in QUANTITIES:
-            pred = PREDICTED.get(q, 0.0 if q == "a" else float("nan"))
+            pred = PREDICTED.get(q, 0.0 if q in ("a", "a_hi") else float("nan"))
             res[q] = fit_across([t["dz"] for t in rows], [t[q]["values"] for t in rows],
                                 n_boot=n_boot, predicted=pred)
         res["C_curve"] = fit_means([t["dz"] for t in rows], [t["C_curve"]["mean"] for t in rows],
