@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from parflow.post import network_across_ensembles as nae
+from parflow.post.network import fit_omega_star
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -140,15 +141,15 @@ def test_fit_means_is_fit_across_without_bootstrap():
 
 def _row(k, seed, **v):
     base = dict(sample=k, seed=seed, status="complete", steps=1, N=64, z=3.8, dz=0.2,
-                has_spectrum=False, C=np.nan, a=np.nan, C_hi=np.nan, a_hi=np.nan, C2=np.nan, omega_star=np.nan,
-                l_c=np.nan, gamma_j=np.nan)
+                has_spectrum=False) | {q: np.nan for q in nae.QUANTITIES}
     return base | v
 
 
 def test_combine_pairs_spectra_by_sample_and_seed():
     shear = dict(folder="z3.8", samples=[_row(0, 11, C=0.03), _row(1, 12, C=0.05),
                                          _row(2, 13, C=0.04)])
-    gap = dict(folder="gap_z3.8", samples=[_row(0, 11, has_spectrum=True, omega_star=0.04),
+    gap = dict(folder="gap_z3.8", samples=[_row(0, 11, has_spectrum=True, omega_star=0.04,
+                                                omega_star_30=0.03),
                                            _row(1, 99, has_spectrum=True, omega_star=0.5),
                                            _row(2, 13, has_spectrum=True, omega_star=0.06)])
     other = dict(folder="z3.6", samples=[_row(0, 21, dz=0.4, C=0.02)])
@@ -157,6 +158,7 @@ def test_combine_pairs_spectra_by_sample_and_seed():
                                                       (0.4, ["z3.6"])]
     ws = [s["omega_star"] for s in out[0]["samples"]]
     assert ws[0] == 0.04 and math.isnan(ws[1]) and ws[2] == 0.06    # seed 99 is another network
+    assert out[0]["samples"][0]["omega_star_30"] == 0.03
     t = nae.per_dz(out[0])
     assert t["omega_star"]["n"] == 2 and t["omega_star"]["mean"] == pytest.approx(0.05)
     assert t["omega_star"]["sem"] == pytest.approx(np.std([0.04, 0.06], ddof=1) / math.sqrt(2))
@@ -208,6 +210,10 @@ def test_per_dz_against_numpy_on_sample_files(tiny):
         assert t[q]["mean"] == pytest.approx(v.mean(), rel=1e-9)
         assert t[q]["sem"] == pytest.approx(v.std(ddof=1) / math.sqrt(3), rel=1e-9)
     assert t["omega_star"]["n"] == 3 and 0 < t["omega_star"]["mean"] < 0.2
+    with h5py.File(files[0]) as f:        # omega* with another fraction, from the spectrum
+        w = [g["omega"][()] for g in f["analysis"].values() if "omega" in g]
+    assert t["omega_star_70"]["values"][0] == pytest.approx(
+        np.mean([fit_omega_star(x, fraction=0.7, n_boot=0)["omega_star"] for x in w]), rel=1e-12)
     assert np.isfinite(t["l_c"]["mean"]) and t["l_c"]["mean"] > 0
     assert all(np.isfinite(t["a"]["values"]))
     assert t["C_curve"]["n"] == 3 and np.isfinite(t["C_curve"]["sem"])

@@ -18,6 +18,9 @@ Per sample (one network, one run file of an ensemble folder, ``parflow.ensemble`
               sample's own spectra or, when the ensemble has none, from the sample with the
               same index *and the same seed* of a companion ensemble of the same networks
               (``runs/ensemble_network_gap_*.toml``: one dense spectrum at gamma = 0);
+              ``omega_star_30``, ``omega_star_70``: the same with the fraction 0.3 and 0.7
+              instead of 1/2 (``fit_omega_star``'s definition; the spread of the exponent
+              between them is the definition's systematic error: docs/networks.md);
 * ``gamma_j`` the strain at the end of the first forward leg (sigma = 1e6: near jamming;
               no prediction: docs/networks.md measured gamma_j ~ 0.45 dz on 3 networks).
 
@@ -59,16 +62,19 @@ import numpy as np
 
 from .ensemble import DONE, _network_curve, jackknife, load_sample, mean_sem, sample_files
 from .fits import fit_power_law_err, forward_rows
-from .network import REVERSE_SIGMA, network_dz, network_fits, network_reverse_fit, network_z
+from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
+                      network_reverse_fit, network_z)
 
 HIGH_SIGMA = (1e4, 1e5)           # C_hi: the reversed-branch fit nearer jamming (N = 40 000:
 #                                   the law holds there and below 1e3, not across: networks.md)
 LC_SIGMA = (10.0, 1e3)            # l_c: mean over the analysis instants in this sigma window
 N_BOOT = 1000                     # bootstrap resamples of the networks of each dz
 BOOT_SEED = 0
-QUANTITIES = ("C", "a", "C_hi", "a_hi", "C2", "omega_star", "l_c", "gamma_j")
-PREDICTED = {"C": -0.5, "C_hi": -0.5, "C_curve": -0.5, "C2": 0.5, "omega_star": 1.0,
-             "l_c": -0.5}
+OMEGA_FRACTIONS = (0.3, 0.7)      # omega* also with these fractions (the definition's spread)
+OMEGA_KEYS = ("omega_star",) + tuple(f"omega_star_{round(100 * f)}" for f in OMEGA_FRACTIONS)
+QUANTITIES = ("C", "a", "C_hi", "a_hi", "C2") + OMEGA_KEYS + ("l_c", "gamma_j")
+PREDICTED = {"C": -0.5, "C_hi": -0.5, "C_curve": -0.5, "C2": 0.5, "l_c": -0.5} | {
+    k: 1.0 for k in OMEGA_KEYS}
 
 
 # ---------------------------------------------------------------------------------------
@@ -142,6 +148,10 @@ def read_ensemble(folder: str) -> dict:
         if hi is not None:
             fits["reverse_hi"] = hi
         v = sample_values(fits)
+        for f, key in zip(OMEGA_FRACTIONS, OMEGA_KEYS[1:]):
+            w = [fit_omega_star(a["omega"], fraction=f, n_boot=0)["omega_star"]
+                 for a in r.analysis if "omega" in a]
+            v[key] = float(np.nanmean(w)) if np.isfinite(w).any() else float("nan")
         runs.append(r)
         rows.append(dict(sample=k, seed=int(r.attrs.get("sample_seed", -1)), status=status,
                          steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0,
@@ -197,7 +207,8 @@ def combine(ensembles: list[dict]) -> list[dict]:
             for s in samples:
                 o = by.get(s["sample"])
                 if o is not None and o["seed"] == s["seed"] and not np.isfinite(s["omega_star"]):
-                    s["omega_star"] = o["omega_star"]
+                    for key in OMEGA_KEYS:
+                        s[key] = o[key]
                     used = True
             if used:
                 sources.append(e["folder"])
