@@ -191,11 +191,53 @@ def _run(args, petsc_args, PETSc) -> int:
             raise InputError(f"the output {path!r} is the scene file itself: write the run to "
                              f"another file (--output)")
         collective(comm, check_output_path, path, args.overwrite)
-    status = Run(scene, comm, path, quiet=args.quiet, cmdline_options=cmdline,
-                 restart=bool(args.restart), max_steps=args.max_steps).execute()
+    def run(on):
+        return Run(scene, on, path, quiet=args.quiet, cmdline_options=cmdline,
+                   restart=bool(args.restart), max_steps=args.max_steps).execute()
+    if scene["solver"]["parallel"] == "threads" and comm.getSize() > 1:
+        status = _on_rank0_with_threads(comm, PETSc, run, ranks_on_node(comm))
+    else:
+        status = run(comm)
     if not args.no_plots and comm.getRank() == 0:
         _plots(path, args.quiet)
     return 0 if status in ("complete", "jammed", "budget") else 1
+
+
+def _on_rank0_with_threads(comm, PETSc, work, threads: int):
+    """solver.parallel = "threads": ``work(COMM_SELF)`` on rank 0 alone, with ``threads`` BLAS
+    threads (one factorisation on the node's cores instead of one identical factorisation per
+    rank); the other ranks wait without spinning (their signals deferred: mpirun relays
+    SIGUSR1/2 to every rank, and rank 0 stops the run) and then return -- or raise -- what
+    rank 0 did."""
+    import pickle                                       # (only for this mode)
+    from .algebra.comm import idle_barrier
+    from .algebra.solvers import set_blas_threads
+    from .state import STOPS
+    mpi = comm.tompi4py()
+    if mpi.Get_rank() == 0:
+        prev = set_blas_threads(threads)
+        try:
+            out = ("return", work(PETSc.COMM_SELF))
+        except BaseException as exc:            # noqa: B036  (handed to every rank, below)
+            out = ("raise", exc)
+        finally:
+            if prev is not None:
+                set_blas_threads(prev)
+        try:
+            pickle.dumps(out)
+        except Exception:                       # an exception that does not pickle
+            out = ("raise", RuntimeError(f"{type(out[1]).__name__}: {out[1]}"))
+        idle_barrier(comm)
+        mpi.bcast(out, root=0)
+    else:
+        with STOPS.deferred():
+            idle_barrier(comm)
+        out = mpi.bcast(None, root=0)
+    kind, value = out
+    if kind == "raise":
+        value.collective = True                 # raised on every rank at once (cli.main)
+        raise value
+    return value
 
 
 def _ensemble(args, petsc_args, comm, scene, source=None) -> int:
@@ -235,6 +277,10 @@ def _ensemble(args, petsc_args, comm, scene, source=None) -> int:
     if n % rps:
         raise InputError(f"ranks_per_sample = {rps} does not divide the job's {n} ranks: run on "
                          f"a multiple of {rps} ranks")
+    if scene["solver"]["parallel"] == "threads" and rps > 1:
+        raise InputError("solver.parallel = 'threads' runs a sample on one rank of its group: "
+                         "an ensemble gets its parallelism from samples side by side; use "
+                         "--ranks-per-sample 1 (or another solver.parallel)")
     collective(comm, check_resources, scene, rps, ranks_on_node(comm))
     cmdline = cmdline_option_names(petsc_args)
     insert_options(scene["petsc"], cmdline)

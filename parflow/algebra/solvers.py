@@ -44,7 +44,7 @@ class SingularOperator(SolveError):
     """The factorisation of N broke down: N is singular to working precision."""
 
 
-PARALLEL_FACTORS = ("auto", "replicated", "redundant", "mumps")
+PARALLEL_FACTORS = ("auto", "replicated", "redundant", "mumps", "threads")
 REUSE_FACTOR = ("auto", "on", "off")      # solver.reuse_factor (dynamics.bonded.resolve_reuse)
 # "auto" replicates the algebra on every rank up to this many rows of N (the CHOLMOD factor of a
 # 2D network with Nc = 1e6 takes ~1 GB); beyond, the distributed MUMPS factorisation
@@ -62,6 +62,24 @@ class SolverOptions:
                             "a step's last force by PCG on its predictor's factor")
 
 
+def set_blas_threads(n: int) -> int | None:
+    """Set the number of threads of the BLAS that CHOLMOD's supernodal factorisation calls
+    (OpenBLAS, through libblas.so.3: Debian's alternative; scripts/env.sh starts it at
+    OPENBLAS_NUM_THREADS = 1).  Returns the previous number, None (nothing done) when the BLAS
+    has no such control."""
+    import ctypes           # (only for solver.parallel = "threads")
+    for name in ("libblas.so.3", "libopenblas.so.0"):
+        try:
+            lib = ctypes.CDLL(name)
+            get, put = lib.openblas_get_num_threads, lib.openblas_set_num_threads
+        except (OSError, AttributeError):
+            continue
+        prev = int(get())
+        put(int(n))
+        return prev
+    return None
+
+
 def resolve_parallel(parallel: str, n_rows: int, comm_size: int) -> str:
     """The multi-rank strategy actually used for a system of ``n_rows`` rows of N.
 
@@ -71,9 +89,13 @@ def resolve_parallel(parallel: str, n_rows: int, comm_size: int) -> str:
       (docs/solvers.md), because a force evaluation is a handful of latency-bound steps.
     * ``redundant``: distributed N gathered onto every rank and factorised there (PCREDUNDANT).
     * ``mumps``: the distributed MUMPS Cholesky (for N too large for one rank's memory).
+    * ``threads``: resolved before the run is built (``shear``): the whole run on rank 0 with
+      one BLAS thread per rank, the other ranks idle -- here it only ever meets one rank.
     """
     if parallel not in PARALLEL_FACTORS:
         raise ValueError(f"solver.parallel must be one of {PARALLEL_FACTORS}, got {parallel!r}")
+    if parallel == "threads":
+        return "threads"          # on one rank (shear: the other ranks wait): as replicated
     if comm_size == 1:
         return "replicated"
     if parallel == "auto":
@@ -91,7 +113,7 @@ def configure_cholesky(ksp, prefix: str, parallel: str = "mumps") -> None:
     """
     if parallel not in PARALLEL_FACTORS:
         raise ValueError(f"solver.parallel must be one of {PARALLEL_FACTORS}, got {parallel!r}")
-    if ksp.getComm().getSize() > 1 and parallel in ("auto", "replicated"):
+    if ksp.getComm().getSize() > 1 and parallel in ("auto", "replicated", "threads"):
         raise ValueError(f"parallel = {parallel!r} on a communicator of several ranks: resolve it "
                          f"with resolve_parallel() and build the operators on COMM_SELF")
     ksp.setType(PETSc.KSP.Type.PREONLY)

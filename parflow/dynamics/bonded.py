@@ -58,6 +58,14 @@ class Force:
 # iterations; otherwise N(s) is factorised (docs/solvers.md, "Reusing the factor").
 REUSE_BERR = 1e-16
 REUSE_MAX_IT = 25
+# Intermediate force solves of a step (Heun's predictor, RKC's stages and its power
+# iteration) with integrator.stage_rtol > 0: PCG on N(s) preconditioned by the factor loaded
+# last, to a relative error stage_rtol in the energy norm, ||dtau||_N / ||tau||_N (= the
+# relative error of V_na and of ds/dgamma: |S^T x|^2 = x.N x), estimated by the
+# preconditioned residual sqrt(r.M^-1 r) (M, the factor, is close to N); within
+# STAGE_MAX_IT iterations, or N(s) is factorised there (and serves the stages that follow).
+STAGE_MAX_IT = 12
+PROJ_RTOL = 1e-8                 # the projection's Newton steps by PCG (project(pcg=True))
 # solver.reuse_factor = "auto": on for models that ask for it (a 2D network's factor costs
 # ~20-30 solves at Nc = 1.9e6) from this many rows of N, and with the "direct" preset only
 REUSE_AUTO_MIN_NC = 250_000
@@ -92,7 +100,7 @@ class BondedSystem:
             # factorised by CHOLMOD (beyond AUTO_REPLICATED_MAX_NC rows: MUMPS, as resolved)
             self.parallel = "redundant"
         # the communicator of the algebra: COMM_SELF when every rank holds the whole system
-        if self.parallel == "replicated" and comm.getSize() > 1:
+        if self.parallel in ("replicated", "threads") and comm.getSize() > 1:
             comm = comm_self()
         self.comm = comm
         self.ops = RigidityOperators(comm, state.n, state.d, bd.i, bd.j)
@@ -111,6 +119,9 @@ class BondedSystem:
         self.reuse_factor = bool(reuse_factor)
         self.n_reused = 0          # force solves done with a reused factor
         self.n_reuse_failed = 0    # ... that fell back to a factorisation
+        self.n_stage_pcg = 0       # intermediate solves (stage_rtol) on the loaded factor
+        self.n_stage_failed = 0    # ... that fell back to a factorisation
+        self.pcg_iterations = 0    # PCG iterations of both kinds
 
     @property
     def omega(self) -> float:
@@ -127,15 +138,21 @@ class BondedSystem:
         self.ops.update(n)
         self.n_factor += 1
 
-    def evaluate(self, s: np.ndarray, gamma: float, what: str = "force", reuse: bool = False) -> Force:
+    def evaluate(self, s: np.ndarray, gamma: float, what: str = "force", reuse: bool = False,
+                 rtol: float = 0.0, guess: np.ndarray | None = None) -> Force:
         """Solve N tau = -b at configuration (s, gamma); leaves N loaded at (s, gamma) --
         except with ``reuse`` (and reuse_factor on): then N(s) tau = -b is solved by PCG
         preconditioned by the factor already loaded (a nearby configuration's, e.g. the
         step's predictor), and the Mat keeps that configuration's values until ``sync()``.
-        If the PCG does not reach REUSE_BERR in REUSE_MAX_IT iterations, N(s) is factorised."""
+        If the PCG does not reach REUSE_BERR in REUSE_MAX_IT iterations, N(s) is factorised.
+        ``rtol`` > 0 (an intermediate solve of a step): the same PCG to the relative
+        energy-norm error ``rtol`` (STAGE_MAX_IT iterations, then a factorisation), started
+        from ``guess`` (tau of a nearby configuration, e.g. the previous stage's)."""
         h, r, ell, n, b = self.geometry(s, gamma)
         tau = None
-        if reuse and self.reuse_factor and self.n_factor > 0:
+        if rtol > 0 and self.n_factor > 0 and self.stage_pcg_possible:
+            tau, info = self._solve_reused(n, -b, what, rtol=rtol, guess=guess)
+        elif reuse and self.reuse_factor and self.n_factor > 0:
             tau, info = self._solve_reused(n, -b, what)
         if tau is None:
             self.load(n)
@@ -164,29 +181,44 @@ class BondedSystem:
                      stress.sigma_tb(tau, b, omega), stress.pressure(tau, ell, omega, self.state.d),
                      info)
 
-    def _solve_reused(self, n: np.ndarray, rhs: np.ndarray, what: str):
+    @property
+    def stage_pcg_possible(self) -> bool:
+        """Whether the force solver holds a factor to precondition with (not the deflated CG)."""
+        return hasattr(self.tau_solver, "apply")
+
+    def _solve_reused(self, n: np.ndarray, rhs: np.ndarray, what: str, rtol: float = 0.0,
+                      guess: np.ndarray | None = None):
         """PCG for N(n) x = rhs, preconditioned by the loaded factor; (x, SolveInfo) when the
-        backward error reaches REUSE_BERR, (None, None) otherwise.  The true residual is
-        recomputed every iteration (it is what the acceptance test looks at)."""
+        backward error reaches REUSE_BERR (``rtol`` = 0) or the estimated relative error in
+        the energy norm reaches ``rtol``, (None, None) otherwise.  The true residual is
+        recomputed every iteration (it is what the acceptance tests look at)."""
         A = self.ops.matvec_at(n)
         nb = float(np.linalg.norm(rhs))
         norm_n = self.tau_solver.norm_bound
-        x = np.zeros_like(rhs)
-        r = rhs.copy()
+        max_it = STAGE_MAX_IT if rtol > 0 else REUSE_MAX_IT
+        if guess is not None and rtol > 0:
+            x = np.array(guess, dtype=float)
+            r = rhs - A(x)
+        else:
+            x = np.zeros_like(rhs)
+            r = rhs.copy()
         z = self._apply(r, what)
         p = z.copy()
         rz = float(r @ z)
         best = np.inf
-        for it in range(1, REUSE_MAX_IT + 1):
+        for it in range(1, max_it + 1):
             Ap = A(p)
             pAp = float(p @ Ap)
             if not (np.isfinite(pAp) and pAp > 0):
                 break
             x += (rz / pAp) * p
-            r = rhs - A(x)
+            # the true residual for the backward error; the recursive one is enough for the
+            # energy-norm test of an intermediate solve (rtol >> round-off)
+            r = r - (rz / pAp) * Ap if rtol > 0 else rhs - A(x)
             nr = float(np.linalg.norm(r))
             berr = backward_error(nr, float(np.linalg.norm(x)), nb, norm_n)
-            if berr <= REUSE_BERR:
+            self.pcg_iterations += 1
+            if rtol == 0 and berr <= REUSE_BERR:
                 self.n_reused += 1
                 return x, SolveInfo(0, nr / nb if nb > 0 else nr, berr, it)
             if not np.isfinite(berr) or berr > 1e3 * best:
@@ -194,9 +226,16 @@ class BondedSystem:
             best = min(best, berr)
             z = self._apply(r, what)
             rz_new = float(r @ z)
+            # ||e||_N^2 ~ r.M^-1 r against ||x||_N^2 = x.N x ~ x.rhs
+            if rtol > 0 and abs(rz_new) <= rtol * rtol * abs(float(x @ rhs)):
+                self.n_stage_pcg += 1
+                return x, SolveInfo(0, nr / nb if nb > 0 else nr, berr, it)
             p = z + (rz_new / rz) * p
             rz = rz_new
-        self.n_reuse_failed += 1
+        if rtol > 0:
+            self.n_stage_failed += 1
+        else:
+            self.n_reuse_failed += 1
         return None, None
 
     def _apply(self, r: np.ndarray, what: str) -> np.ndarray:
@@ -223,7 +262,7 @@ class BondedSystem:
         return self.ops.ST_numpy(x)
 
     def project(self, s: np.ndarray, gamma: float, tol: float = 1e-13, max_iter: int = 30,
-                max_refactor: int = 6):
+                max_refactor: int = 6, pcg: bool = False):
         """Restore rod lengths: dr = -S^T N^-1 (l - l0), iterated until max|l - l0| <= tol
         (absolute, in a0).  Quasi-Newton with the loaded factor (the predictor's) while it
         contracts the error at least 4x per iteration; otherwise a Newton step: N is
@@ -231,6 +270,8 @@ class BondedSystem:
         point, which is restored.  Near jamming the predictor's N differs from N at the
         corrected point along its softest modes and the quasi-Newton iteration diverges for
         all but small steps; Newton converges there (at most ``max_refactor`` refactorisations).
+        With ``pcg`` the Newton steps solve N(s) x = -g by PCG on the loaded factor (to
+        PROJ_RTOL; a refactorisation only if that PCG fails).
         Returns (s, iterations, final error).  Raises SingularOperator if it does not
         converge (the constraints cannot be met: the system has jammed, or the step is too
         large)."""
@@ -242,6 +283,7 @@ class BondedSystem:
         tol = max(tol, 8 * np.finfo(float).eps * np.abs(h).max() * max(1.0, np.abs(s).max()))
         prev = None                      # (s, g, n, err) of the previous iterate
         refactors = 0
+        newton = False                   # pcg: Newton steps by PCG from here on
         for it in range(max_iter + 1):
             r, ell, n, _ = pair_geometry(s, h, st.E, bd.i, bd.j, bd.shift)
             g = ell - bd.l0
@@ -255,10 +297,19 @@ class BondedSystem:
                     break
                 if not err < prev[3]:             # grew: back to the better point
                     s, g, n, err = prev
-                self.load(n)                      # Newton: N at this point
+                if pcg:
+                    newton = True
+                else:
+                    self.load(n)                  # Newton: N at this point
                 refactors += 1
             prev = (s, g, n, err)
-            x = self.solve_N(-g, what="projection")
+            x = self._solve_reused(n, -g, "projection", rtol=PROJ_RTOL)[0] if newton else None
+            if x is None:
+                if newton:                        # the PCG failed: factorise here
+                    self.load(n)
+                x = self.solve_N(-g, what="projection")
+            else:
+                self.ops.set_unit_vectors(n)      # S^T below: at this point's unit vectors
             s = s + self.ST(x) @ hinv.T
         raise SingularOperator(f"projection on the rod constraints did not converge "
                                f"(max |l - l0| = {err:.3e} after {it} iterations, "

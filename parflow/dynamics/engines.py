@@ -144,7 +144,8 @@ class BondedEngine:
     def counters(self) -> dict:
         sysm = self.system
         return dict(n_factorisations=sysm.n_factor, n_reused_factor=sysm.n_reused,
-                    n_reuse_failed=sysm.n_reuse_failed)
+                    n_reuse_failed=sysm.n_reuse_failed, n_stage_pcg=sysm.n_stage_pcg,
+                    n_stage_failed=sysm.n_stage_failed, pcg_iterations=sysm.pcg_iterations)
 
     def destroy(self) -> None:
         if self._spec is not None:

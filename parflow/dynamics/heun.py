@@ -23,6 +23,9 @@ Step (Heun, second order, first-same-as-last):
     max_i |V_na,i| dg <= max_displacement.
 A step whose factorisation or projection fails is rejected and retried 4x smaller; when dg
 falls below min_dgamma the system has jammed (:class:`Jammed`).
+With stage_rtol > 0 the predictor's force is solved by PCG on the factor at the step's start
+(to that relative error of V_na), the projection's Newton steps likewise, and the step's last
+force is a fresh factorisation: one factorisation per accepted step (docs/solvers.md).
 """
 from __future__ import annotations
 
@@ -55,7 +58,10 @@ class StepControl:
     controller: str = key("I", lambda v: v in CONTROLLERS, f"one of {list(CONTROLLERS)}",
                           "step-size control: I (dg ~ tol/err) or PI")
     method: str = key("heun", lambda v: v in INTEGRATORS, "a registered integrator (INTEGRATORS)",
-                      "the bonded integrator: heun (the only one built in)")
+                      "the bonded integrator: heun or rkc")
+    stage_rtol: float = key(0.0, lambda v: 0 <= v < 1e-3, "in [0, 1e-3)",
+                            "intermediate force solves (predictor, stages) by PCG on the loaded "
+                            "factor to this relative error of V_na; 0: a factorisation each")
 
     def validate(self):
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",
@@ -133,8 +139,12 @@ class Heun:
         """The end of every bonded step: ``s_new`` projected on the rod lengths (with the
         factor loaded last) and the force there; (s, projection iterations, length error, F).
         SingularOperator if either fails (the caller rejects the step)."""
-        s_new, it, lerr = self.system.project(s_new, gamma_new, tol=self.c.length_tol)
-        return s_new, it, lerr, self.system.evaluate(s_new, gamma_new, what="force", reuse=True)
+        s_new, it, lerr = self.system.project(s_new, gamma_new, tol=self.c.length_tol,
+                                              pcg=self.c.stage_rtol > 0)
+        # with stage_rtol the step's last force is always a factorisation: the next step's
+        # intermediate solves are preconditioned by the factor at its start (as after a restart)
+        return s_new, it, lerr, self.system.evaluate(s_new, gamma_new, what="force",
+                                                     reuse=self.c.stage_rtol == 0)
 
     def step(self, s, gamma, F0, direction: int, dg: float, dg_cap: float | None = None) -> StepResult:
         """One accepted step from (s, gamma) with force F0; ``dg`` is the proposed magnitude,
@@ -147,7 +157,8 @@ class Heun:
             dg = self.trial(F0, dg, dg_cap, gamma, rejected)
             h = direction * dg
             try:
-                F1 = sysm.evaluate(s + h * k0, gamma + h, what="predictor")
+                F1 = sysm.evaluate(s + h * k0, gamma + h, what="predictor", rtol=c.stage_rtol,
+                                   guess=F0.tau)
             except SingularOperator:
                 rejected += 1
                 dg *= 0.25

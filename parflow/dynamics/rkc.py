@@ -22,6 +22,12 @@ One step of size h = direction * dg from (s, gamma) with F0 = F(s):
     err = |h^-1-free est in real space| / (dg max(|V0|, |V1|)) -- accepted if err <= tol, and
     the next dg = dg * clip(0.8 (tol / err)^(1/2), 0.2, 4) (the error of a step goes like
     dg^2 in this measure), then bounded as Heun's by max_dgamma and max_displacement.
+    A rejected step shrinks dg and doubles the rho the stage count assumes (the power
+    iteration may have underestimated it), relaxed by 2 % per accepted step.
+Intermediate solves: with integrator.stage_rtol > 0 the stages, F1 and the power iteration
+solve N tau = -b by PCG on the factor loaded last (the step's start), each started from the
+previous stage's tau (dynamics.bonded, STAGE_MAX_IT); the step's last force is a fresh
+factorisation.
 Rod lengths and sigma identity: as every bonded step (projection, and sigma computed from the
 final force solve).
 """
@@ -98,9 +104,12 @@ class RKC(Heun):
             self.since, self.v = int(ck["rkc_since"]), np.array(ck["rkc_v"], dtype=float)
             self.boost = float(ck.get("rkc_boost", 1.0))
 
-    def _F(self, s, gamma, what):
+    def _F(self, s, gamma, what, near=None):
+        """F at (s, gamma); ``near``: a Force at a nearby configuration (its tau starts the
+        PCG of an intermediate solve, stage_rtol > 0)."""
         self.evaluations += 1
-        return self.system.evaluate(s, gamma, what=what)
+        return self.system.evaluate(s, gamma, what=what, rtol=self.c.stage_rtol,
+                                    guess=None if near is None else near.tau)
 
     def spectral_radius(self, s, gamma, F0) -> float:
         """|lambda_max| of dF/ds at (s, gamma) by a nonlinear power iteration on finite
@@ -112,7 +121,7 @@ class RKC(Heun):
         rho = 0.0
         for _ in range(POWER_ITERS):
             eps = 1e-7 * scale * math.sqrt(s.size)
-            Fv = self._F(s + eps * v, gamma, "spectral radius").ds
+            Fv = self._F(s + eps * v, gamma, "spectral radius", near=F0).ds
             w = (Fv - k0) / eps
             nw = float(np.linalg.norm(w))
             if not np.isfinite(nw) or nw == 0:
@@ -149,7 +158,10 @@ class RKC(Heun):
                 rejected += 1
                 # a power iteration approaches rho from below, slowly where the top of the
                 # spectrum is dense (a long chain: a diffusion): a rejection may be an unstable
-                # step, so the next stage count assumes a twice larger rho
+                # step, so the next stage count assumes a twice larger rho.  (Boosting only
+                # rejections with err > 8 tol: networks 1 271 -> 706 factorisations, but the
+                # Fig. 2 chain 361 -> 425 trial steps; RKC is not for networks anyway,
+                # docs/benchmarks.md "Integrators on a network".)
                 self.boost = min(self.boost * 2.0, BOOST_MAX)
                 dg *= max(0.2, 0.8 * math.sqrt(c.tol / err)) if np.isfinite(err) and err > 0 else 0.25
                 continue
@@ -174,14 +186,14 @@ class RKC(Heun):
         y_prev2, y_prev = s, s + mut1 * h * k0
         # stage abscissae c_j (for gamma): c_1 = mu~_1, then the same recursion on c
         c_prev2, c_prev = 0.0, mut1
-        F = None
+        F = F0
         for j in range(2, n_st + 1):               # the stages (sequential by nature)
-            F = self._F(y_prev, gamma + c_prev * h, "RKC stage")
+            F = self._F(y_prev, gamma + c_prev * h, "RKC stage", near=F)
             m, n_, mt, g = mu[j - 2], nu[j - 2], mut[j - 2], gt[j - 2]
             y = (1 - m - n_) * s + m * y_prev + n_ * y_prev2 + mt * h * F.ds + g * h * k0
             cj = m * c_prev + n_ * c_prev2 + mt + g
             y_prev2, y_prev, c_prev2, c_prev = y_prev, y, c_prev, cj
-        F1 = self._F(y_prev, gamma + h, "RKC end")
+        F1 = self._F(y_prev, gamma + h, "RKC end", near=F)
         return y_prev, F1
 
 

@@ -105,6 +105,8 @@ def memory_needed(name: str, n: int, n_ranks: int = 1, ranks_here: int | None = 
         parallel = "auto"
     strategy = "replicated" if m["replicated"] else resolve_parallel(parallel, int(rows), n_ranks)
     whole = m["per_unit"] * float(n)
+    if strategy == "threads":            # the whole system on rank 0, the others idle
+        return here * m["per_rank"] + whole
     if strategy in ("replicated", "redundant"):
         return here * (m["per_rank"] + whole)
     return here * m["per_rank"] + whole * here / n_ranks

@@ -1,0 +1,175 @@
+"""Integrators and intermediate solves on a network sheared forward to sigma = 1e6 and back
+(the bench_network_shear.py protocol; issue "Numerics built for the near-singular regime").
+
+The network (packing at phi = 0.88, WLKM dilution to z = 3.8, seed 1) is built once and saved;
+each case loads it, runs forward until sigma >= 1e6, then reversed until sigma <= 10, with no
+analyses and no omega_min.  Cases: Heun and RKC2 at their default tolerance, each with a
+factorisation per force solve and with the intermediate solves by PCG on the step's factor
+(integrator.stage_rtol = 1e-8); two tight references (Heun tol = max_displacement = 0.005;
+RKC2 tol = 5e-4, max_displacement = 0.005, stage_rtol = 1e-10).  Per case: loop wall and CPU
+seconds, accepted and rejected steps, factorisations, intermediate PCG solves and iterations,
+gamma where sigma first crosses 1e6 and C of the reversed branch, C = dx / d(1/sigma) between
+sigma = 1e5 and 1e3 (x: strain since the reversal; the secant does not depend on where the
+steps fell), each against both references.
+
+    python benchmarks/bench_network_integrators.py [--n 4096] [--cases heun,rkc,...]
+    -> docs/benchmarks/network_integrators.json (one record per N and rank count)
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+
+import petsc4py
+
+petsc4py.init(sys.argv[:1])
+import h5py  # noqa: E402
+import numpy as np  # noqa: E402
+from petsc4py import PETSc  # noqa: E402
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from parflow.run import Run, setup_logging  # noqa: E402
+from parflow.scene import load_scene  # noqa: E402
+
+import results  # noqa: E402  (benchmarks/results.py)
+
+SCENE = """
+seed = 1
+[model]
+name = "network"
+N = {n}
+z = 3.8
+phi = 0.88
+network_file = "{network}"
+[[protocol.leg]]
+direction = "forward"
+sigma_above = 1e6
+[[protocol.leg]]
+direction = "reverse"
+sigma_below = 10
+sigma_above = 1e7
+strain = 1.0
+[integrator]
+{integrator}
+[output]
+path = "{path}"
+"""
+CASES = {
+    "heun": 'method = "heun"',
+    "heun_stages": 'method = "heun"\nstage_rtol = 1e-8',
+    "rkc": 'method = "rkc"\ntol = 0.05',
+    "rkc_stages": 'method = "rkc"\ntol = 0.05\nstage_rtol = 1e-8',
+    "ref_heun": 'method = "heun"\ntol = 0.005\nmax_displacement = 0.005',
+    "ref_rkc": 'method = "rkc"\ntol = 5e-4\nmax_displacement = 0.005\nstage_rtol = 1e-10',
+    # tighter still, to see which reference has converged (not in the default --cases)
+    "ref_heun_tighter": 'method = "heun"\ntol = 0.001\nmax_displacement = 0.001',
+    "ref_rkc_tighter": 'method = "rkc"\ntol = 5e-5\nmax_displacement = 0.001\nstage_rtol = 1e-11',
+}
+DEFAULT_CASES = ("heun", "heun_stages", "rkc", "rkc_stages", "ref_heun", "ref_rkc")
+C_WINDOW = (1e5, 1e3)
+
+
+def reverse_C(d) -> float:
+    """C = dx / d(1/sigma) between sigma = C_WINDOW[0] and C_WINDOW[1] on the reversed branch."""
+    rv = d["direction"] < 0
+    x = d["strain"][rv] - d["strain"][rv][0]
+    inv = 1.0 / d["sigma"][rv]
+
+    def x_at(v):
+        k = int(np.argmax(inv >= v))
+        return x[k - 1] + (v - inv[k - 1]) * (x[k] - x[k - 1]) / (inv[k] - inv[k - 1])
+    hi, lo = C_WINDOW
+    return float((x_at(1 / lo) - x_at(1 / hi)) / (1 / lo - 1 / hi))
+
+
+def run(folder, n, network, case):
+    comm = PETSc.COMM_WORLD
+    path = os.path.join(folder, f"{case}_N{n}.h5")
+    if comm.getRank() == 0 and os.path.exists(path):
+        os.remove(path)
+    comm.tompi4py().Barrier()
+    scene = load_scene(SCENE.format(n=n, network=network, integrator=CASES[case], path=path))
+    setup_logging(comm, quiet=True)
+    comm.tompi4py().Barrier()
+    t, c = time.perf_counter(), time.process_time()
+    status = Run(scene, comm, path, quiet=True).execute()
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    comm.tompi4py().Barrier()
+    with h5py.File(path) as f:
+        ts = f["timeseries"]
+        d = {k: ts[k][:] for k in ("gamma", "sigma", "direction", "wall", "rejected", "strain")}
+        counters = {k: int(f.attrs[k]) for k in ("n_factorisations", "n_stage_pcg", "n_stage_failed",
+                                                  "pcg_iterations")}
+    fw = d["direction"] > 0
+    row = dict(case=case, integrator=CASES[case].replace("\n", "; "), status=status,
+               wall_seconds=wall, cpu_seconds=cpu, loop_seconds=float(d["wall"][-1] - d["wall"][0]),
+               steps_forward=int(fw.sum() - 1), steps_reverse=int((~fw).sum()),
+               rejected=int(d["rejected"].sum()), **counters,
+               gamma_1e6=results.crossing(d["gamma"][fw], d["sigma"][fw], 1e6), C=reverse_C(d))
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n", type=int, default=4096)
+    ap.add_argument("--cases", default=",".join(DEFAULT_CASES))
+    ap.add_argument("--folder", default=os.path.join("out", "bench_network_integrators"))
+    args = ap.parse_args()
+    cases = args.cases.split(",")
+    if not set(cases) <= set(CASES):
+        raise SystemExit(f"--cases: a subset of {list(CASES)}")
+    comm = PETSc.COMM_WORLD
+    rank, size = comm.getRank(), comm.getSize()
+    os.makedirs(args.folder, exist_ok=True)
+    network = os.path.join(args.folder, f"network_N{args.n}.h5")
+    if rank == 0 and not os.path.exists(network):
+        from parflow.models.network_build import network_from_packing, save_network
+        from parflow.packing.fire import make_packing
+        save_network(network, network_from_packing(make_packing(args.n, phi=0.88, seed=1), 3.8, seed=1))
+    comm.tompi4py().Barrier()
+    load_start = os.getloadavg()
+    rows = []
+    if rank == 0:        # the rows of earlier runs of this N and rank count (other cases) stay
+        import json
+        p = results.path("network_integrators")
+        old = json.load(open(p)) if os.path.exists(p) else {}
+        prev = [r for r in old.get("records", []) if r["n"] == args.n and r["ranks"] == size]
+        kept = [r for r in (prev[0]["rows"] if prev else []) if r["case"] not in cases]
+    else:
+        old, kept = {}, []
+    for case in cases:
+        rows.append(run(args.folder, args.n, network, case))
+        r = rows[-1]
+        if rank == 0:
+            print(f"{case:12s}: {r['status']}, loop {r['loop_seconds']:.1f} s (CPU {r['cpu_seconds']:.1f} s), "
+                  f"steps {r['steps_forward']} + {r['steps_reverse']}, rejected {r['rejected']}, "
+                  f"factorisations {r['n_factorisations']}, PCG solves {r['n_stage_pcg']} "
+                  f"({r['pcg_iterations']} iterations), gamma_1e6 {r['gamma_1e6']:.10f}, C {r['C']:.4f}",
+                  flush=True)
+    rows = kept + rows
+    ref = {r["case"]: r for r in rows}
+    for r in rows:
+        for name in ("ref_heun", "ref_rkc"):           # NaN without that reference
+            g, c = (ref[name]["gamma_1e6"], ref[name]["C"]) if name in ref else (np.nan, np.nan)
+            r[f"dgamma_{name}"] = r["gamma_1e6"] - g
+            r[f"dC_{name}"] = r["C"] / c - 1
+    if rank == 0:
+        recs = [r for r in old.get("records", []) if not (r["n"] == args.n and r["ranks"] == size)]
+        recs.append(dict(n=args.n, ranks=size, date=time.strftime("%Y-%m-%d %H:%M:%S"),
+                         load_start=load_start, load_end=os.getloadavg(),
+                         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                         c_window=C_WINDOW, rows=rows))
+        results.write("network_integrators", dict(
+            benchmark="network forward to sigma = 1e6 and back: integrators and intermediate solves",
+            records=recs))
+        for r in rows:
+            print(f"{r['case']:12s}: dgamma vs ref_heun {r['dgamma_ref_heun']:+.1e}, ref_rkc "
+                  f"{r['dgamma_ref_rkc']:+.1e}; dC/C vs ref_heun {r['dC_ref_heun']:+.3f}, ref_rkc "
+                  f"{r['dC_ref_rkc']:+.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
