@@ -174,3 +174,18 @@ def test_ensemble_against_theory(tmp_path, mu):
     fits = r["summary"]["fits"]["forward.attr.V2.exponent"]
     e = r["exponents"]["V2"]["data"]
     assert e["mean"] == pytest.approx(float(fits["mean"]), rel=1e-9)
+
+
+def test_split_transverse_and_longitudinal(comm):
+    """plot.chain_theory.split: |V_na|^2 = V_x^2 + V_y^2; in the linear regime (eps = 0.02)
+    the velocity is transverse and the tension uniform, as the theory has them; at eps = 0.1,
+    mu = 2 the longitudinal part and the tension's spread are O(1) in the crossover."""
+    from parflow.plot.chain_theory import split
+    lin = split(100, 0.02, 0, 7, fractions=(0.2, 0.02))
+    for row in lin:
+        assert row["V2"] == pytest.approx(row["Vx2"] + row["Vy2"], rel=1e-12)
+        assert row["Vx2"] < 0.02 * row["V2"]
+        assert row["tension_std"] < 0.1 * row["tension"]
+        assert row["V2"] == pytest.approx(row["theory_V2"], rel=0.03)
+    big = split(300, 0.1, 2, 1, fractions=(0.2,))[0]
+    assert big["Vx2"] > 0.3 * big["V2"] and big["tension_std"] > 0.3 * big["tension"]

@@ -2,6 +2,7 @@
 "Seed averages").
 
     python -m parflow.plot.chain_theory FOLDER [FOLDER ...] [--png OUT.png] [--json OUT.json]
+    python -m parflow.plot.chain_theory --split N EPS MU SEED      # one chain, see split()
 
 For each ensemble folder (the Fig. 2 chain, runs/ensemble_chain_*.toml): the sample files'
 <V^2>, <dtheta^2> (time series of the forward leg) and l_corr (analysis instants) on a common
@@ -10,7 +11,8 @@ standard error over the samples that cover the grid point); the theory solved (a
 ensemble's expected initial spectrum and (b) for each sample's own initial angles (rebuilt
 from its seed with models.chain.initial_angles, checked against the sample's Lx0), (b)
 averaged like the samples; and the exponents fitted the way post.chain.chain_fits fits a run
-(log-binned least squares over each sample's window) to the data and to both theories.
+(log-binned least squares over each sample's window) to the data and to both theories, and
+the paired difference data - theory of the same seed.
 The ensemble summary has <V^2> as a curve but neither <dtheta^2> nor l_corr, so all three
 curves are computed here from the sample files.
 """
@@ -23,6 +25,11 @@ import os
 
 import numpy as np
 
+from ..algebra.comm import world
+from ..dynamics.bonded import BondedSystem
+from ..dynamics.heun import Jammed, StepControl
+from ..dynamics.rkc import RKC
+from ..models import chain
 from ..models.chain import initial_angles
 from ..post import chain_theory as ct
 from ..post.fits import BINS_PER_DECADE, fit_power_law, forward_instants, forward_rows
@@ -135,6 +142,8 @@ def compare(folder: str, per_decade: int = 12) -> dict:
             xt = np.geomspace(lo, hi, 200)
             ex[q]["theory_mean"].append(fit_power_law(xt, ct.on_grid(mean_sol, xt, q))[0])
             ex[q]["theory_sample"].append(fit_power_law(xt, ct.on_grid(sol, xt, q))[0])
+    for q, d in ex.items():     # paired: data minus the theory for the same seed
+        d["data_minus_theory_sample"] = list(np.subtract(d["data"], d["theory_sample"]))
     exps = {q: {k: _mstats(v) for k, v in d.items()} for q, d in ex.items()}
     return dict(folder=folder, N=N, eps=eps, mu=mu, n_samples=len(samples), x=xg, data=data,
                 theory_mean=theo_m, theory_sample=theo_s, exponents=exps,
@@ -171,8 +180,8 @@ def figure(results: list):
             e = r["exponents"][q]["data"]
             ax.axvspan(*r["window"], color="0.93", zorder=0)
             ax.set_ylabel(LABEL[q])
-            ax.set_title(f"N = {r['N']}, μ = {r['mu']}: fitted {e['mean']:+.3f} ± {e['sem']:.3f}",
-                         fontsize=9)
+            ax.set_title(f"N = {r['N']}, ε = {r['eps']:g}, μ = {r['mu']}: fitted "
+                         f"{e['mean']:+.3f} ± {e['sem']:.3f}", fontsize=9)
             ax.grid(True, which="major", alpha=0.3)
             if i == 0:
                 ax.legend(fontsize=7, loc="best")
@@ -201,17 +210,65 @@ def _jsonable(r):
     return keep
 
 
+def split(N: int, eps: float, mu: int, seed: int, tol: float = 0.003,
+          fractions=(0.5, 0.2, 0.1, 0.04, 0.02, 0.01, 0.004, 0.002, 0.001, 4e-4)) -> list:
+    """One chain (models.chain, ``seed``) driven forward with RKC2 (``tol``), stopped at
+    x = gamma_c - gamma = fraction * gamma_c: where its <V^2> = |V_na|^2 / N sits, split into
+    the longitudinal <V_x^2> and transverse <V_y^2> parts, against the theory for its own
+    initial angles (which has only the transverse part, T (sin theta_k - sin theta_{k-1}));
+    the rods' tension, mean and spread (the theory's is uniform); 1 / <dtheta^2>."""
+    st = chain.build(dict(N=N, epsilon=eps, mu=mu), seed=seed)
+    r = (st.s[st.bonds.j] + st.bonds.shift - st.s[st.bonds.i]) @ st.h.T
+    sol = ct.solve(ct.sample_spectrum(np.arctan2(r[:, 1], r[:, 0])), lengths=False)
+    gc = st.meta["gamma_c"]
+    marks = [f * gc for f in fractions]
+    sysm = BondedSystem(world(), st)
+    integ = RKC(sysm, StepControl(tol=tol, method="rkc"))
+    s, g, F, dg = st.s, 0.0, sysm.evaluate(st.s, 0.0), 1e-5
+    rows = []
+    try:
+        while marks:
+            R = integ.step(s, g, F, +1, dg, dg_cap=max(gc - g - marks[0], 1e-16))
+            s, g, F, dg = R.s, R.gamma, R.F, R.next_dgamma
+            x = gc - g
+            if x <= marks[0] * (1 + 1e-9):
+                marks.pop(0)
+                V = F.V_na
+                rows.append(dict(x=x, V2=float(np.mean(np.sum(V ** 2, axis=1))),
+                                 Vx2=float(np.mean(V[:, 0] ** 2)), Vy2=float(np.mean(V[:, 1] ** 2)),
+                                 theory_V2=float(ct.on_grid(sol, [x], "V2")[0]),
+                                 tension=float(-F.tau.mean()), tension_std=float(F.tau.std()),
+                                 inv_dtheta2=float(1.0 / np.mean(chain._dtheta(F.n) ** 2))))
+            dg = min(dg, 0.5 * x)
+    except Jammed:
+        pass
+    finally:
+        sysm.destroy()
+    return rows
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m parflow.plot.chain_theory", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("folders", nargs="+")
+    p.add_argument("folders", nargs="*")
+    p.add_argument("--split", nargs=4, metavar=("N", "EPS", "MU", "SEED"), default=None)
+    p.add_argument("--tol", type=float, default=0.003, help="RKC2 tolerance of --split")
+    p.add_argument("--fractions", default="0.5,0.2,0.1,0.04,0.02,0.01,0.004,0.002,0.001,4e-4",
+                   help="--split: where to stop, x / gamma_c, comma separated, decreasing")
     p.add_argument("--png", default=None)
     p.add_argument("--json", default=None)
     a = p.parse_args(argv)
+    if a.split:
+        N, eps, mu, seed = int(a.split[0]), float(a.split[1]), int(a.split[2]), int(a.split[3])
+        print(f"N = {N}, eps = {eps}, mu = {mu}, seed = {seed}, RKC2 tol = {a.tol}")
+        fr = tuple(float(v) for v in a.fractions.split(","))
+        for row in split(N, eps, mu, seed, tol=a.tol, fractions=fr):
+            print("  " + "  ".join(f"{k}={v:.3e}" for k, v in row.items()), flush=True)
+        return
     results = [compare(f) for f in a.folders]
     if a.png:
         fig = figure(results)
-        fig.savefig(a.png, dpi=90)
+        fig.savefig(a.png, dpi=72)
     out = [_jsonable(r) for r in results]
     if a.json:
         with open(a.json, "w") as fh:
