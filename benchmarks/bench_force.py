@@ -33,7 +33,8 @@ from petsc4py import PETSc  # noqa: E402
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models import chain  # noqa: E402
-from parflow.algebra.solvers import configure_cholesky  # noqa: E402
+from parflow.algebra.comm import idle_barrier  # noqa: E402
+from parflow.algebra.solvers import configure_cholesky, set_blas_threads  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402
 from parflow.dynamics.bonded import BondedSystem  # noqa: E402
 
@@ -84,8 +85,8 @@ def lattice_state(n_bonds: int, z: float = 3.8) -> tuple[State, dict]:
                     build_seconds=time.perf_counter() - t)
 
 
-def timeit(fn, repeat):
-    comm = PETSc.COMM_WORLD.tompi4py()
+def timeit(fn, repeat, comm=None):
+    comm = (comm or PETSc.COMM_WORLD).tompi4py()
     fn()                                   # warm-up (symbolic factorisation, caches)
     ts = []
     for _ in range(repeat):
@@ -97,8 +98,8 @@ def timeit(fn, repeat):
     return float(np.median(ts))
 
 
-def measure(st: State, repeat: int, parallel: str) -> dict:
-    comm = PETSc.COMM_WORLD
+def measure(st: State, repeat: int, parallel: str, comm=None) -> dict:
+    comm = comm or PETSc.COMM_WORLD
     sysm = BondedSystem(comm, st, parallel=parallel)
     s0 = st.s.copy()
     k = [0]
@@ -107,11 +108,11 @@ def measure(st: State, repeat: int, parallel: str) -> dict:
         k[0] += 1
         sysm.evaluate(s0, 1e-9 * k[0])
 
-    t_force = timeit(force, repeat)
+    t_force = timeit(force, repeat, comm)
     # geometry alone, and N values alone, for the breakdown
-    t_geom = timeit(lambda: sysm.geometry(s0, 1e-9), repeat)
+    t_geom = timeit(lambda: sysm.geometry(s0, 1e-9), repeat, comm)
     n = sysm.geometry(s0, 0.0)[3]
-    t_load = timeit(lambda: sysm.ops.update(n), repeat)
+    t_load = timeit(lambda: sysm.ops.update(n), repeat, comm)
 
     # raw: a bare KSP on a copy of N, numeric refactorisation + solve only
     M = sysm.ops.N.duplicate(copy=True)
@@ -129,7 +130,7 @@ def measure(st: State, repeat: int, parallel: str) -> dict:
         if ksp.getConvergedReason() < 0:
             raise RuntimeError("raw solve failed")
 
-    t_raw = timeit(raw, repeat)
+    t_raw = timeit(raw, repeat, comm)
     package = sysm.tau_solver.package
     ksp.destroy(), M.destroy(), x.destroy(), b.destroy()
     sysm.destroy()
@@ -143,7 +144,8 @@ def main():
     p.add_argument("--sizes", default="1e4,1e5,1e6")
     p.add_argument("--systems", default="chain,network")
     p.add_argument("--repeat", type=int, default=15)
-    p.add_argument("--parallel", default="auto", choices=["auto", "replicated", "redundant", "mumps"])
+    p.add_argument("--parallel", default="auto",
+                   choices=["auto", "replicated", "redundant", "mumps", "threads"])
     args = p.parse_args()
     comm = PETSc.COMM_WORLD
     records = []
@@ -156,7 +158,18 @@ def main():
             else:
                 st, info = lattice_state(size)
             rec = dict(system=system, Nc=len(st.bonds), ranks=comm.getSize(), parallel=args.parallel, **info)
-            rec.update(measure(st, args.repeat, args.parallel))
+            if args.parallel == "threads" and comm.getSize() > 1:
+                # as parflow.shear does it: rank 0 alone with one BLAS thread per rank, the
+                # others waiting without spinning
+                if comm.getRank() == 0:
+                    os.sched_setaffinity(0, range(os.cpu_count()))   # mpirun binds to a core
+                    prev = set_blas_threads(comm.getSize())
+                    rec.update(measure(st, args.repeat, "threads", PETSc.COMM_SELF))
+                    set_blas_threads(prev)
+                idle_barrier(comm)
+                rec = comm.tompi4py().bcast(rec, root=0)
+            else:
+                rec.update(measure(st, args.repeat, args.parallel))
             records.append(rec)
             if comm.getRank() == 0:
                 print(f"{system:8s} Nc={rec['Nc']:8d} ranks={rec['ranks']} {rec['factor_package']:18s} "

@@ -35,40 +35,21 @@ from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
+from common import FORWARD_AND_BACK, network_file  # noqa: E402  (benchmarks/common.py)
 
-SCENE = """
-seed = 1
-[model]
-name = "network"
-N = {n}
-z = 3.8
-phi = 0.88
-network_file = "{network}"
-[[protocol.leg]]
-direction = "forward"
-sigma_above = 1e6
-[[protocol.leg]]
-direction = "reverse"
-sigma_below = 10
-sigma_above = 1e7
-strain = 1.0
-[integrator]
-{integrator}
-[output]
-path = "{path}"
-"""
 CASES = {
     "heun": 'method = "heun"',
     "heun_stages": 'method = "heun"\nstage_rtol = 1e-8',
     "rkc": 'method = "rkc"\ntol = 0.05',
     "rkc_stages": 'method = "rkc"\ntol = 0.05\nstage_rtol = 1e-8',
+    "rkc_2stages": 'method = "rkc"\ntol = 0.05\nmax_stages = 2',
     "ref_heun": 'method = "heun"\ntol = 0.005\nmax_displacement = 0.005',
     "ref_rkc": 'method = "rkc"\ntol = 5e-4\nmax_displacement = 0.005\nstage_rtol = 1e-10',
     # tighter still, to see which reference has converged (not in the default --cases)
     "ref_heun_tighter": 'method = "heun"\ntol = 0.001\nmax_displacement = 0.001',
     "ref_rkc_tighter": 'method = "rkc"\ntol = 5e-5\nmax_displacement = 0.001\nstage_rtol = 1e-11',
 }
-DEFAULT_CASES = ("heun", "heun_stages", "rkc", "rkc_stages", "ref_heun", "ref_rkc")
+DEFAULT_CASES = ("heun", "heun_stages", "rkc", "rkc_stages", "rkc_2stages", "ref_heun", "ref_rkc")
 C_WINDOW = (1e5, 1e3)
 
 
@@ -91,7 +72,8 @@ def run(folder, n, network, case):
     if comm.getRank() == 0 and os.path.exists(path):
         os.remove(path)
     comm.tompi4py().Barrier()
-    scene = load_scene(SCENE.format(n=n, network=network, integrator=CASES[case], path=path))
+    scene = load_scene(FORWARD_AND_BACK.format(n=n, network=network, path=path,
+                                               settings="[integrator]\n" + CASES[case]))
     setup_logging(comm, quiet=True)
     comm.tompi4py().Barrier()
     t, c = time.perf_counter(), time.process_time()
@@ -124,12 +106,7 @@ def main():
     comm = PETSc.COMM_WORLD
     rank, size = comm.getRank(), comm.getSize()
     os.makedirs(args.folder, exist_ok=True)
-    network = os.path.join(args.folder, f"network_N{args.n}.h5")
-    if rank == 0 and not os.path.exists(network):
-        from parflow.models.network_build import network_from_packing, save_network
-        from parflow.packing.fire import make_packing
-        save_network(network, network_from_packing(make_packing(args.n, phi=0.88, seed=1), 3.8, seed=1))
-    comm.tompi4py().Barrier()
+    network = network_file(args.folder, args.n, comm)
     load_start = os.getloadavg()
     rows = []
     if rank == 0:        # the rows of earlier runs of this N and rank count (other cases) stay

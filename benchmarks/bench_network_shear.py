@@ -32,29 +32,12 @@ from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
+from common import FORWARD_AND_BACK, network_file  # noqa: E402  (benchmarks/common.py)
 
-SCENE = """
-seed = 1
-[model]
-name = "network"
-N = {n}
-z = 3.8
-phi = 0.88
-network_file = "{network}"
-[[protocol.leg]]
-direction = "forward"
-sigma_above = 1e6
-[[protocol.leg]]
-direction = "reverse"
-sigma_below = 10
-sigma_above = 1e7
-strain = 1.0
-[integrator]
+SETTINGS = """[integrator]
 preset = "{preset}"
 [solver]
 reuse_factor = "{reuse}"
-[output]
-path = "{path}"
 """
 CASES = [("default", "off"), ("fast", "off"), ("fast", "on")]
 
@@ -62,7 +45,8 @@ CASES = [("default", "off"), ("fast", "off"), ("fast", "on")]
 def run(folder, n, network, preset, reuse):
     comm = PETSc.COMM_WORLD
     path = os.path.join(folder, f"shear_{preset}_{reuse}.h5")
-    scene = load_scene(SCENE.format(n=n, network=network, preset=preset, reuse=reuse, path=path))
+    scene = load_scene(FORWARD_AND_BACK.format(n=n, network=network, path=path,
+                                               settings=SETTINGS.format(preset=preset, reuse=reuse)))
     setup_logging(comm, quiet=True)
     comm.tompi4py().Barrier()
     t = time.perf_counter()
@@ -95,14 +79,7 @@ def main():
     comm = PETSc.COMM_WORLD
     rank, size = comm.getRank(), comm.getSize()
     os.makedirs(args.folder, exist_ok=True)
-    network = os.path.join(args.folder, f"network_N{args.n}.h5")
-    if rank == 0 and not os.path.exists(network):
-        from parflow.models.network_build import network_from_packing, save_network
-        from parflow.packing.fire import make_packing
-        t = time.perf_counter()
-        save_network(network, network_from_packing(make_packing(args.n, phi=0.88, seed=1), 3.8, seed=1))
-        print(f"network N = {args.n}: {time.perf_counter() - t:.1f} s", flush=True)
-    comm.tompi4py().Barrier()
+    network = network_file(args.folder, args.n, comm)
     rows, data = [], {}
     for preset, reuse in CASES:
         row, d = run(args.folder, args.n, network, preset, reuse)

@@ -25,16 +25,17 @@ import results  # noqa: E402  (benchmarks/results.py)
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 
 
-def run(method: str, tol: float, out: str) -> dict:
+def run(method: str, tol: float, out: str, max_stages: int = 200) -> dict:
     cmd = [sys.executable, "-m", "parflow.shear", "--output", out, "--overwrite", "--quiet",
-           "--no-plots", "--set", f"integrator.method={method}", "--set", f"integrator.tol={tol}"]
+           "--no-plots", "--set", f"integrator.method={method}", "--set", f"integrator.tol={tol}",
+           "--set", f"integrator.max_stages={max_stages}"]
     t = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=ROOT)
     wall = time.perf_counter() - t
     with h5py.File(out) as f:
         ts = f["timeseries"]
         d = {k: ts[k][:] for k in ("gamma", "V2", "direction", "rejected", "step")}
-        return dict(method=method, tol=tol, status=str(f.attrs["status"]),
+        return dict(method=method, tol=tol, max_stages=max_stages, status=str(f.attrs["status"]),
                     steps=int(f.attrs["steps"]), rejected=int(d["rejected"].sum()),
                     factorisations=int(f.attrs.get("n_factorisations", -1)),
                     wall_seconds=round(wall, 2), gamma_c=float(f["model"].attrs["gamma_c"])), d
@@ -64,7 +65,8 @@ def departure(d, level: float = 0.1) -> float:
 
 def main():
     p = argparse.ArgumentParser()
-    p.add_argument("--runs", default="heun:0.05,heun:0.01,rkc:0.003,rkc:0.001,rkc:0.0003")
+    p.add_argument("--runs", default="heun:0.05,heun:0.01,rkc:0.01,rkc:0.003,rkc:0.001,rkc:0.003:2",
+                   help="method:tol[:max_stages] ...")
     p.add_argument("--reference", default="heun:0.002")
     a = p.parse_args()
     tmp = tempfile.mkdtemp(prefix="parflow-stiff-")
@@ -73,8 +75,9 @@ def main():
     ref_row.update(departure_strain=departure(ref))
     rows = []
     for spec in a.runs.split(","):
-        m, t = spec.split(":")
-        row, d = run(m, float(t), os.path.join(tmp, f"{m}_{t}.h5"))
+        m, t, *ms = spec.split(":")
+        row, d = run(m, float(t), os.path.join(tmp, f"{m}_{t}_{''.join(ms)}.h5"),
+                     int(ms[0]) if ms else 200)
         row.update(forward_max_dlnV2=forward_error(d, ref), departure_strain=departure(d))
         rows.append(row)
         print(row, flush=True)

@@ -215,6 +215,11 @@ def _on_rank0_with_threads(comm, PETSc, work, threads: int):
     from .state import STOPS
     mpi = comm.tompi4py()
     if mpi.Get_rank() == 0:
+        try:        # mpirun binds each rank to one core: rank 0's threads need the others'
+            os.sched_setaffinity(0, range(os.cpu_count() or 1))
+        except (OSError, AttributeError):
+            pass
+        threads = max(1, min(threads, len(os.sched_getaffinity(0))))
         prev = set_blas_threads(threads)
         try:
             out = ("return", work(PETSc.COMM_SELF))

@@ -59,6 +59,9 @@ class StepControl:
                           "step-size control: I (dg ~ tol/err) or PI")
     method: str = key("heun", lambda v: v in INTEGRATORS, "a registered integrator (INTEGRATORS)",
                       "the bonded integrator: heun or rkc")
+    max_stages: int = key(200, lambda v: isinstance(v, int) and 2 <= v <= 200, "an integer in [2, 200]",
+                          "rkc: the most stages of one step (2: no stabilisation, a "
+                          "second-order two-stage step)")
     stage_rtol: float = key(0.0, lambda v: 0 <= v < 1e-3, "in [0, 1e-3)",
                             "intermediate force solves (predictor, stages) by PCG on the loaded "
                             "factor to this relative error of V_na; 0: a factorisation each")

@@ -30,6 +30,9 @@ previous stage's tau (dynamics.bonded, STAGE_MAX_IT); the step's last force is a
 factorisation.
 Rod lengths and sigma identity: as every bonded step (projection, and sigma computed from the
 final force solve).
+Not for networks yet: on an N = 4 096 network RKC2 agrees with Heun on sigma(gamma) forward
+(gamma at sigma = 1e6 to 1e-10) but its reversed branch's C is 7-9 % above Heun's converged
+value at every tolerance tried (docs/benchmarks.md, "Integrators on a network").
 """
 from __future__ import annotations
 
@@ -76,8 +79,8 @@ def rkc_coefficients(s: int):
     return mut1, mu, nu, mut, gt
 
 
-def stages_for(dg: float, rho: float) -> int:
-    return int(min(MAX_STAGES, max(2, 1 + math.ceil(math.sqrt(1.54 * dg * rho * SAFETY)))))
+def stages_for(dg: float, rho: float, max_stages: int = MAX_STAGES) -> int:
+    return int(min(max_stages, max(2, 1 + math.ceil(math.sqrt(1.54 * dg * rho * SAFETY)))))
 
 
 class RKC(Heun):
@@ -142,7 +145,7 @@ class RKC(Heun):
                 except SingularOperator:
                     self.rho = self.rho or 0.0
                 self.rho_dg, self.since = dg, 0
-            n_st = stages_for(dg, self.rho * self.boost)
+            n_st = stages_for(dg, self.rho * self.boost, c.max_stages)
             h = direction * dg
             try:
                 Ys, F1 = self._stages(s, gamma, F0, h, n_st)
