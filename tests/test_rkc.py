@@ -90,3 +90,12 @@ def test_rkc_restart_is_the_uninterrupted_run(mpi_tmp_path, comm):
         g, v = f["timeseries/gamma"][:], f["timeseries/V2"][:]
     np.testing.assert_array_equal(g, whole["gamma"])
     np.testing.assert_array_equal(v, whole["V2"])
+
+
+def test_max_stages_bounds_the_stage_count():
+    from parflow.state import InputError
+    assert stages_for(1.0, 1e12, 2) == 2 and stages_for(1.0, 1e12) == 200
+    scene = SCENE.format(method="rkc", tol=0.01, path="x.h5").replace("tol = 0.01", "tol = 0.01\nmax_stages = 5")
+    assert load_scene(scene)["integrator"]["max_stages"] == 5
+    with pytest.raises(InputError, match="max_stages"):
+        load_scene(scene.replace("max_stages = 5", "max_stages = 1"))
