@@ -36,16 +36,9 @@ from parflow.models import get_model  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
+from common import NETWORK_MODEL, network_file  # noqa: E402  (benchmarks/common.py)
 
-SCENE = """
-seed = 1
-[model]
-name = "network"
-N = {n}
-z = 3.8
-phi = 0.88
-network_file = "{network}"
-[[protocol.leg]]
+SCENE = NETWORK_MODEL + """[[protocol.leg]]
 direction = "forward"
 sigma_above = {top}
 [output]
@@ -59,12 +52,7 @@ def states(folder, n, top):
     path = os.path.join(folder, f"states_N{n}.npz")
     if os.path.exists(path):
         return np.load(path)
-    network = os.path.join(folder, f"network_N{n}.h5")
-    if comm.getRank() == 0 and not os.path.exists(network):
-        from parflow.models.network_build import network_from_packing, save_network
-        from parflow.packing.fire import make_packing
-        save_network(network, network_from_packing(make_packing(n, phi=0.88, seed=1), 3.8, seed=1))
-    comm.tompi4py().Barrier()
+    network = network_file(folder, n, comm)
     scene = load_scene(SCENE.format(n=n, network=network, top=top, folder=folder))
     model = get_model("network")
     eng = make_engine(PETSc.COMM_SELF, model.build(scene["model"], 1), scene, model)

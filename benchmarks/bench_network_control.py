@@ -31,16 +31,9 @@ from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
+from common import NETWORK_MODEL, network_file  # noqa: E402  (benchmarks/common.py)
 
-SCENE = """
-seed = 1
-[model]
-name = "network"
-N = {n}
-z = 3.8
-phi = 0.88
-network_file = "{network}"
-[[protocol.leg]]
+SCENE = NETWORK_MODEL + """[[protocol.leg]]
 direction = "forward"
 sigma_above = 1e5
 [integrator]
@@ -84,12 +77,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=4096)
     args = ap.parse_args()
-    from parflow.models.network_build import network_from_packing, save_network
-    from parflow.packing.fire import make_packing
     with tempfile.TemporaryDirectory() as tmp:
-        network = os.path.join(tmp, "net.h5")
-        pk = make_packing(args.n, phi=0.88, seed=1)
-        save_network(network, network_from_packing(pk, 3.8, seed=1))
+        network = network_file(tmp, args.n, PETSc.COMM_WORLD)
         ref = run(tmp, args.n, network, *REF)
         print(f"reference tol {REF[0]}: {ref['gamma'].size - 1} steps, {ref['loop_seconds']:.1f} s", flush=True)
         rows = []

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import os
 
-# {settings}: the case's own tables ([integrator], [solver], ...)
-FORWARD_AND_BACK = """
+# the benchmarks' network (its file from network_file below), {n} and {network} to fill
+NETWORK_MODEL = """
 seed = 1
 [model]
 name = "network"
@@ -14,7 +14,9 @@ N = {n}
 z = 3.8
 phi = 0.88
 network_file = "{network}"
-[[protocol.leg]]
+"""
+# {settings}: the case's own tables ([integrator], [solver], ...)
+FORWARD_AND_BACK = NETWORK_MODEL + """[[protocol.leg]]
 direction = "forward"
 sigma_above = 1e6
 [[protocol.leg]]
