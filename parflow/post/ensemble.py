@@ -195,7 +195,7 @@ def _chain_curve(runs) -> dict:
                                xscale="log", yscale="log")}
 
 
-def _network_curve(runs) -> dict:
+def network_curves(runs) -> dict:
     """dsigma/dgamma against sigma on the first reversed leg."""
     xs, ys = [], []
     for r in runs:
@@ -321,7 +321,7 @@ def summarise(folder: str) -> dict:
         if model == "chain":
             curves.update(_chain_curve(rs))
         if model == "network":
-            curves.update(_network_curve(rs))
+            curves.update(network_curves(rs))
         curves.update(_profile_curves(rs, model))
     ens = {}
     if "V2_forward" in curves:

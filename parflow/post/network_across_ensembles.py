@@ -60,7 +60,7 @@ import sys
 
 import numpy as np
 
-from .ensemble import DONE, _network_curve, jackknife, load_sample, mean_sem, sample_files
+from .ensemble import DONE, jackknife, load_sample, mean_sem, network_curves, sample_files
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
@@ -157,7 +157,7 @@ def read_ensemble(folder: str) -> dict:
                          steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0,
                          N=int(r.param("N")), z=network_z(r), dz=network_dz(r),
                          has_spectrum=any("omega" in a for a in r.analysis), **v))
-    curve = _network_curve(runs).get("dsigma_dgamma_reverse") if runs else None
+    curve = network_curves(runs).get("dsigma_dgamma_reverse") if runs else None
     return dict(folder=folder, samples=rows, C_curve=curve_C(curve))
 
 
