@@ -177,10 +177,10 @@ def test_ensemble_against_theory(tmp_path, mu):
 
 
 def test_split_transverse_and_longitudinal(comm):
-    """plot.chain_theory.split: |V_na|^2 = V_x^2 + V_y^2; in the linear regime (eps = 0.02)
+    """chain_split.split: |V_na|^2 = V_x^2 + V_y^2; in the linear regime (eps = 0.02)
     the velocity is transverse and the tension uniform, as the theory has them; at eps = 0.1,
     mu = 2 the longitudinal part and the tension's spread are O(1) in the crossover."""
-    from parflow.plot.chain_theory import split
+    from parflow.chain_split import split
     lin = split(100, 0.02, 0, 7, fractions=(0.2, 0.02))
     for row in lin:
         assert row["V2"] == pytest.approx(row["Vx2"] + row["Vy2"], rel=1e-12)

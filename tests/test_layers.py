@@ -20,7 +20,7 @@ LAYERS = {
     "protocol": 5, "scene": 5, "provenance": 5, "checkpoint": 5,
     "run": 6, "ensemble": 6,
     "post": 6, "plot": 7,
-    "cli": 8, "shear": 8, "spectrum": 8, "modes": 8, "prepare": 8,
+    "cli": 8, "shear": 8, "spectrum": 8, "modes": 8, "prepare": 8, "chain_split": 8,
 }
 PETSC_OK = {"algebra", "cli"}          # cli.init_petsc initialises PETSc with the command line
 

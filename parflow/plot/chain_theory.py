@@ -2,14 +2,14 @@
 "Seed averages").
 
     python -m parflow.plot.chain_theory FOLDER [FOLDER ...] [--png OUT.png] [--json OUT.json]
-    python -m parflow.plot.chain_theory --split N EPS MU SEED      # one chain, see split()
+    python -m parflow.chain_split N EPS MU SEED     # one chain's <V^2> split (parflow.chain_split)
 
 For each ensemble folder (the Fig. 2 chain, runs/ensemble_chain_*.toml): the sample files'
 <V^2>, <dtheta^2> (time series of the forward leg) and l_corr (analysis instants) on a common
 log grid of x = gamma_c - gamma (gamma_c = ln(N/Lx0), each sample's own), averaged (mean and
 standard error over the samples that cover the grid point); the theory solved (a) for the
-ensemble's expected initial spectrum and (b) for each sample's own initial angles (rebuilt
-from its seed with models.chain.initial_angles, checked against the sample's Lx0), (b)
+ensemble's expected initial spectrum and (b) for each sample's own initial angles (from
+the run file's /initial state, checked against the sample's Lx0), (b)
 averaged like the samples; and the exponents fitted the way post.chain.chain_fits fits a run
 (log-binned least squares over each sample's window) to the data and to both theories, and
 the paired difference data - theory of the same seed.
@@ -25,12 +25,7 @@ import os
 
 import numpy as np
 
-from ..algebra.comm import world
-from ..dynamics.bonded import BondedSystem
-from ..dynamics.heun import Jammed, StepControl
-from ..dynamics.rkc import RKC
-from ..models import chain
-from ..models.chain import initial_angles
+from ..io import RunFile
 from ..post import chain_theory as ct
 from ..post.fits import BINS_PER_DECADE, fit_power_law, forward_instants, forward_rows
 from ..post.runs import load
@@ -74,6 +69,16 @@ def _mstats(vals):
     return dict(mean=float(v.mean()), sem=float(v.std(ddof=1) / np.sqrt(v.size)), n=int(v.size))
 
 
+def initial_angles(path: str) -> np.ndarray:
+    """The rods' initial angles theta_k, from the run file's /initial state (rod k joins
+    nodes k and k + 1: r_k = h0 (s_j + shift - s_i))."""
+    with RunFile(path) as rf:
+        g = rf.initial()
+    b = g["bonds"]
+    r = (g["s"][b["j"]] + b["shift"] - g["s"][b["i"]]) @ np.asarray(g["h0"]).T
+    return np.arctan2(r[:, 1], r[:, 0])
+
+
 def sample_data(path: str) -> dict:
     """One sample: its forward leg (x, V2, dtheta2), l_corr at its instants, its window, and
     its initial mode spectrum."""
@@ -82,10 +87,10 @@ def sample_data(path: str) -> dict:
     gc = float(run.model_attrs["gamma_c"])
     fw = forward_rows(run)
     x = gc - run.ts["gamma"][fw]
-    theta = initial_angles(N, eps, mu, np.random.default_rng(int(run.attrs["sample_seed"])))
+    theta = initial_angles(path)
     Lx0 = float(np.cos(theta).sum())
     if abs(Lx0 - float(run.model_attrs["Lx0"])) > 1e-9 * N:
-        raise ValueError(f"{path}: initial angles rebuilt from the seed do not match Lx0")
+        raise ValueError(f"{path}: the initial angles of /initial do not match Lx0")
     inst = [a for a in forward_instants(run) if gc - a["gamma"] > 0]
     cap = N / 2
     lc = np.array([float(a.get("l_corr", np.nan)) for a in inst])
@@ -210,61 +215,13 @@ def _jsonable(r):
     return keep
 
 
-def split(N: int, eps: float, mu: int, seed: int, tol: float = 0.003,
-          fractions=(0.5, 0.2, 0.1, 0.04, 0.02, 0.01, 0.004, 0.002, 0.001, 4e-4)) -> list:
-    """One chain (models.chain, ``seed``) driven forward with RKC2 (``tol``), stopped at
-    x = gamma_c - gamma = fraction * gamma_c: where its <V^2> = |V_na|^2 / N sits, split into
-    the longitudinal <V_x^2> and transverse <V_y^2> parts, against the theory for its own
-    initial angles (which has only the transverse part, T (sin theta_k - sin theta_{k-1}));
-    the rods' tension, mean and spread (the theory's is uniform); 1 / <dtheta^2>."""
-    st = chain.build(dict(N=N, epsilon=eps, mu=mu), seed=seed)
-    r = (st.s[st.bonds.j] + st.bonds.shift - st.s[st.bonds.i]) @ st.h.T
-    sol = ct.solve(ct.sample_spectrum(np.arctan2(r[:, 1], r[:, 0])), lengths=False)
-    gc = st.meta["gamma_c"]
-    marks = [f * gc for f in fractions]
-    sysm = BondedSystem(world(), st)
-    integ = RKC(sysm, StepControl(tol=tol, method="rkc"))
-    s, g, F, dg = st.s, 0.0, sysm.evaluate(st.s, 0.0), 1e-5
-    rows = []
-    try:
-        while marks:
-            R = integ.step(s, g, F, +1, dg, dg_cap=max(gc - g - marks[0], 1e-16))
-            s, g, F, dg = R.s, R.gamma, R.F, R.next_dgamma
-            x = gc - g
-            if x <= marks[0] * (1 + 1e-9):
-                marks.pop(0)
-                V = F.V_na
-                rows.append(dict(x=x, V2=float(np.mean(np.sum(V ** 2, axis=1))),
-                                 Vx2=float(np.mean(V[:, 0] ** 2)), Vy2=float(np.mean(V[:, 1] ** 2)),
-                                 theory_V2=float(ct.on_grid(sol, [x], "V2")[0]),
-                                 tension=float(-F.tau.mean()), tension_std=float(F.tau.std()),
-                                 inv_dtheta2=float(1.0 / np.mean(chain._dtheta(F.n) ** 2))))
-            dg = min(dg, 0.5 * x)
-    except Jammed:
-        pass
-    finally:
-        sysm.destroy()
-    return rows
-
-
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m parflow.plot.chain_theory", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("folders", nargs="*")
-    p.add_argument("--split", nargs=4, metavar=("N", "EPS", "MU", "SEED"), default=None)
-    p.add_argument("--tol", type=float, default=0.003, help="RKC2 tolerance of --split")
-    p.add_argument("--fractions", default="0.5,0.2,0.1,0.04,0.02,0.01,0.004,0.002,0.001,4e-4",
-                   help="--split: where to stop, x / gamma_c, comma separated, decreasing")
     p.add_argument("--png", default=None)
     p.add_argument("--json", default=None)
     a = p.parse_args(argv)
-    if a.split:
-        N, eps, mu, seed = int(a.split[0]), float(a.split[1]), int(a.split[2]), int(a.split[3])
-        print(f"N = {N}, eps = {eps}, mu = {mu}, seed = {seed}, RKC2 tol = {a.tol}")
-        fr = tuple(float(v) for v in a.fractions.split(","))
-        for row in split(N, eps, mu, seed, tol=a.tol, fractions=fr):
-            print("  " + "  ".join(f"{k}={v:.3e}" for k, v in row.items()), flush=True)
-        return
     results = [compare(f) for f in a.folders]
     if a.png:
         fig = figure(results)
