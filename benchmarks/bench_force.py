@@ -34,7 +34,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models import chain  # noqa: E402
 from parflow.algebra.comm import idle_barrier  # noqa: E402
-from parflow.algebra.solvers import configure_cholesky, set_blas_threads  # noqa: E402
+from parflow.algebra.solvers import configure_cholesky, set_blas_threads, use_cores  # noqa: E402
 from parflow.state import Bonds, State  # noqa: E402
 from parflow.dynamics.bonded import BondedSystem  # noqa: E402
 
@@ -162,10 +162,10 @@ def main():
                 # as parflow.shear does it: rank 0 alone with one BLAS thread per rank, the
                 # others waiting without spinning
                 if comm.getRank() == 0:
-                    os.sched_setaffinity(0, range(os.cpu_count()))   # mpirun binds to a core
-                    prev = set_blas_threads(comm.getSize())
+                    _, prev = use_cores(comm.getSize())
                     rec.update(measure(st, args.repeat, "threads", PETSc.COMM_SELF))
-                    set_blas_threads(prev)
+                    if prev is not None:
+                        set_blas_threads(prev)
                 idle_barrier(comm)
                 rec = comm.tompi4py().bcast(rec, root=0)
             else:

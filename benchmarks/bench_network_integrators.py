@@ -112,7 +112,10 @@ def main():
     if rank == 0:        # the rows of earlier runs of this N and rank count (other cases) stay
         import json
         p = results.path("network_integrators")
-        old = json.load(open(p)) if os.path.exists(p) else {}
+        old = {}
+        if os.path.exists(p):
+            with open(p) as fh:
+                old = json.load(fh)
         prev = [r for r in old.get("records", []) if r["n"] == args.n and r["ranks"] == size]
         kept = [r for r in (prev[0]["rows"] if prev else []) if r["case"] not in cases]
     else:

@@ -211,16 +211,11 @@ def _on_rank0_with_threads(comm, PETSc, work, threads: int):
     rank 0 did."""
     import pickle                                       # (only for this mode)
     from .algebra.comm import idle_barrier
-    from .algebra.solvers import set_blas_threads
+    from .algebra.solvers import set_blas_threads, use_cores
     from .state import STOPS
     mpi = comm.tompi4py()
     if mpi.Get_rank() == 0:
-        try:        # mpirun binds each rank to one core: rank 0's threads need the others'
-            os.sched_setaffinity(0, range(os.cpu_count() or 1))
-        except (OSError, AttributeError):
-            pass
-        threads = max(1, min(threads, len(os.sched_getaffinity(0))))
-        prev = set_blas_threads(threads)
+        _, prev = use_cores(threads)
         try:
             out = ("return", work(PETSc.COMM_SELF))
         except BaseException as exc:            # noqa: B036  (handed to every rank, below)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes
 import gc
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +68,6 @@ def set_blas_threads(n: int) -> int | None:
     (OpenBLAS, through libblas.so.3: Debian's alternative; scripts/env.sh starts it at
     OPENBLAS_NUM_THREADS = 1).  Returns the previous number, None (nothing done) when the BLAS
     has no such control."""
-    import ctypes           # (only for solver.parallel = "threads")
     for name in ("libblas.so.3", "libopenblas.so.0"):
         try:
             lib = ctypes.CDLL(name)
@@ -78,6 +78,19 @@ def set_blas_threads(n: int) -> int | None:
         put(int(n))
         return prev
     return None
+
+
+def use_cores(n: int) -> tuple[int, int | None]:
+    """Let this process compute on up to ``n`` cores (solver.parallel = "threads"): widen its
+    core binding to the whole node (mpirun binds each rank to one core) and give the BLAS
+    min(n, cores now allowed) threads.  Returns (threads given, the BLAS's previous count, or
+    None when it has no such control -- then nothing was set)."""
+    try:
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+    except (OSError, AttributeError):
+        pass
+    threads = max(1, min(n, len(os.sched_getaffinity(0))))
+    return threads, set_blas_threads(threads)
 
 
 def resolve_parallel(parallel: str, n_rows: int, comm_size: int) -> str:

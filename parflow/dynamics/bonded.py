@@ -190,8 +190,9 @@ class BondedSystem:
                       guess: np.ndarray | None = None):
         """PCG for N(n) x = rhs, preconditioned by the loaded factor; (x, SolveInfo) when the
         backward error reaches REUSE_BERR (``rtol`` = 0) or the estimated relative error in
-        the energy norm reaches ``rtol``, (None, None) otherwise.  The true residual is
-        recomputed every iteration (it is what the acceptance tests look at)."""
+        the energy norm reaches ``rtol``, (None, None) otherwise.  For the backward error the
+        true residual is recomputed every iteration (it is what that test looks at); the
+        energy-norm test uses the recursive one."""
         A = self.ops.matvec_at(n)
         nb = float(np.linalg.norm(rhs))
         norm_n = self.tau_solver.norm_bound
