@@ -27,6 +27,7 @@ import numpy as np
 
 from ..io import RunFile
 from ..post import chain_theory as ct
+from ..post.ensemble import mean_sem
 from ..post.fits import BINS_PER_DECADE, fit_power_law, forward_instants, forward_rows
 from ..post.runs import load
 from .base import new_figure
@@ -49,24 +50,10 @@ def _interp(xg, x, y):
     return np.where((xg >= x[0]) & (xg <= x[-1]), out, np.nan)
 
 
-def _stats(rows):
-    rows = np.asarray(rows, float)
-    n = np.sum(np.isfinite(rows), axis=0)
-    with np.errstate(invalid="ignore"), np.testing.suppress_warnings() as sw:
-        sw.filter(RuntimeWarning)
-        m = np.nanmean(rows, axis=0)
-        s = np.nanstd(rows, axis=0, ddof=1) / np.sqrt(n)
-    m = np.where(n >= 1, m, np.nan)
-    s = np.where(n >= 2, s, np.nan)
-    return m, s, n
-
-
 def _mstats(vals):
-    v = np.asarray([a for a in vals if np.isfinite(a)], float)
-    if v.size < 2:
-        return dict(mean=float(v.mean()) if v.size else float("nan"), sem=float("nan"),
-                    n=int(v.size))
-    return dict(mean=float(v.mean()), sem=float(v.std(ddof=1) / np.sqrt(v.size)), n=int(v.size))
+    """mean, standard error and count of the finite values (post.ensemble.mean_sem)."""
+    m, se, n = mean_sem(np.asarray(vals, float))
+    return dict(mean=float(m), sem=float(se), n=int(n))
 
 
 def initial_angles(path: str) -> np.ndarray:
@@ -129,8 +116,8 @@ def compare(folder: str, per_decade: int = 12) -> dict:
             rows = [_interp(xg, s["lx"], s["l_corr"]) for s in samples]
         else:
             rows = [_interp(xg, s["x"], s[q]) for s in samples]
-        data[q] = _stats(rows)
-        theo_s[q] = _stats([ct.on_grid(sol, xg, q) for sol in sols])
+        data[q] = mean_sem(rows)
+        theo_s[q] = mean_sem([ct.on_grid(sol, xg, q) for sol in sols])
     theo_m = {q: ct.on_grid(mean_sol, xg, q) for q in QUANTITIES}
     # exponents: each sample's data and both theories over that sample's window
     ex = {q: dict(data=[], theory_mean=[], theory_sample=[]) for q in QUANTITIES}
