@@ -3,7 +3,7 @@
 one after the other on one rank (``--samples 2``, serial), against one sample alone
 (``--samples 1``) and against a plain run of the scene (no ensemble).
 
-    python benchmarks/bench_ensemble.py [--N 6000] [--V2 1e7]   # -> docs/benchmarks/ensemble.json
+    python benchmarks/bench_ensemble.py [--N 30000] [--V2 1e7] [--queue 6] # -> docs/benchmarks/ensemble.json
 
 Target (the ensemble issue): 2 samples on 2 ranks in <= 1.05x the wall time of one sample
 alone, i.e. >= 1.9x the throughput of running them one by one.  The two samples have
@@ -76,6 +76,8 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--N", type=int, default=30000)
     ap.add_argument("--V2", type=float, default=1e7)
+    ap.add_argument("--queue", type=int, default=0, help="also K samples (a queue: K/2 per "
+                    "rank) on 2 ranks against the same K one by one; 0: not run")
     ap.add_argument("--bind-to", default="none", help="mpirun --bind-to (none: the ranks may "
                     "move to a free core, which matters on a machine shared with other jobs)")
     args = ap.parse_args()
@@ -100,6 +102,21 @@ def main() -> int:
         t_serial = timed(shear + ["--samples", "2", "--output", os.path.join(d, "serial")] + opts)
         t_two = timed([mpirun, "-n", "2", "--bind-to", args.bind_to] + shear + ["--samples", "2", "--output",
                                                      os.path.join(d, "two")] + opts)
+        queue = None
+        if args.queue > 0:
+            K = args.queue
+            t_qs = timed(shear + ["--samples", str(K), "--output", os.path.join(d, "qserial")] + opts)
+            t_q2 = timed([mpirun, "-n", "2", "--bind-to", args.bind_to] + shear + [
+                "--samples", str(K), "--output", os.path.join(d, "qtwo")] + opts)
+            qs = [sample_info(os.path.join(d, "qserial"), k) for k in range(K)]
+            q2 = [sample_info(os.path.join(d, "qtwo"), k) for k in range(K)]
+            queue = dict(samples=K, serial_job_seconds=t_qs, serial_cpu_seconds=CPU[4],
+                         two_ranks_job_seconds=t_q2, two_ranks_cpu_seconds=CPU[5],
+                         throughput_ratio=t_qs / t_q2,
+                         steps=[s["steps"] for s in qs],
+                         same_steps_on_two_ranks=[s["steps"] for s in q2] == [s["steps"] for s in qs],
+                         sample_cpu_ratio_two_ranks_vs_serial=sum(
+                             s["sample_cpu_seconds"] for s in q2) / sum(s["sample_cpu_seconds"] for s in qs))
         load1 = os.getloadavg()
         one = sample_info(os.path.join(d, "one"), 0)
         serial = [sample_info(os.path.join(d, "serial"), k) for k in range(2)]
@@ -135,11 +152,16 @@ def main() -> int:
                            t["sample_cpu_seconds"] / s["sample_cpu_seconds"] for t, s in zip(two, serial)],
                        note="unshared machine, each rank a core: wall = CPU (a model, not a "
                             "measurement)"),
+        queue=queue,
         overhead_per_sample_seconds=overhead_one,
         ensemble_machinery_seconds=t_one - t_plain,
         target=dict(throughput_ratio_at_least=1.9, wall_ratio_at_most=1.05),
     )
     out = results.write("ensemble", data)
+    if queue:
+        print(f"queue of {queue['samples']} samples: one by one {queue['serial_job_seconds']:.1f} s, "
+              f"on 2 ranks {queue['two_ranks_job_seconds']:.1f} s: throughput "
+              f"x{queue['throughput_ratio']:.2f}")
     print(f"one sample alone {t_one:.1f} s ({one['steps']} steps, {one['wall_seconds']:.1f} s in "
           f"the run loop); 2 samples one by one {t_serial:.1f} s; 2 samples on 2 ranks "
           f"{t_two:.1f} s: throughput x{data['throughput_ratio']:.2f}, wall ratio against the "
