@@ -70,6 +70,9 @@ class LegRule:
     V2_below: float = key(None, *POSITIVE, "stop when <V^2> <= this")
     strain: float = key(None, *POSITIVE, "stop after this much strain in the leg")
     max_steps: int = key(None, *POSITIVE, "stop after this many steps in the leg")
+    integrator: dict = key(None, lambda v: len(v) > 0, "a non-empty table of [integrator] keys",
+                           "this leg's [integrator] keys, over the scene's (bonded models), "
+                           "e.g. integrator = { method = \"heun\" }")
 
 
 @dataclass

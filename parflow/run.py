@@ -91,6 +91,8 @@ class Run:
         state = eng.state
         legs = [Leg(x, k, len(scene["protocol"]["leg"])) for k, x in enumerate(scene["protocol"]["leg"])]
         clock = Clock() if ck is None else Clock.restore(ck)
+        if clock.leg < len(legs):       # the current leg's own integrator keys (bonded models)
+            eng.use_integrator(legs[clock.leg].spec.get("integrator"), ck)
 
         # the schedule (protocol triggers); their memory is restored from the checkpoint
         omega_due = Every(cfg["omega_min_every"])
@@ -224,6 +226,10 @@ class Run:
                                  len(legs), leg.spec["direction"], clock.step, eng.gamma, why)
                         analyse(obs)
                         clock.next_leg()
+                        if clock.leg < len(legs) and eng.use_integrator(legs[clock.leg].spec.get("integrator")):
+                            log.info("leg %d/%d: integrator %s", clock.leg + 1, len(legs),
+                                     ", ".join(f"{k} = {v}" for k, v in legs[clock.leg].spec.get("integrator", {}).items())
+                                     or "as [integrator]")
                         leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, EtaEstimate()
                         continue
                     cap = leg.spec["strain"] - clock.leg_strain if "strain" in leg.spec else None

@@ -168,6 +168,7 @@ def load_scene(text: str, source: str = "<scene>") -> dict:
             scene[section] = _fill(table, SCHEMA[section], f"{section}.")
     scene["protocol"]["leg"] = _legs(raw.get("protocol", {}).get("leg"))
     StepControl(**scene["integrator"]).validate()      # the integrator's own cross-checks
+    _check_leg_integrators(scene)
     scene["text"] = text
     return scene
 
@@ -237,6 +238,28 @@ def _legs(legs) -> list:
     return out
 
 
+def _check_leg_integrators(scene: dict) -> None:
+    """A leg's ``integrator`` table: [integrator] keys (no preset), typed and range-checked as
+    there, merged over the scene's and cross-checked; only for the bonded models."""
+    for k, leg in enumerate(scene["protocol"]["leg"]):
+        if "integrator" not in leg:
+            continue
+        where = f"protocol.leg[{k}].integrator."
+        if get_model(scene["model"]["name"]).ENGINE != "bonded":
+            raise InputError(f"{where[:-1]}: the {scene['model']['name']} model has no "
+                             "integrator (its step is controlled by [model] keys); remove it")
+        if "preset" in leg["integrator"]:
+            raise InputError(f"{where}preset: a leg takes the preset's keys, not a preset "
+                             "(e.g. tol, max_displacement)")
+        given = {n: v for n, v in _fill(leg["integrator"], SCHEMA["integrator"], where).items()
+                 if n in leg["integrator"]}
+        leg["integrator"] = given
+        try:
+            StepControl(**{**scene["integrator"], **given}).validate()
+        except InputError as exc:
+            raise InputError(f"protocol.leg[{k}]: {exc}") from None
+
+
 def check_resources(scene: dict, n_ranks: int = 1, ranks_here: int | None = None) -> None:
     """InputError if the scene's model is too large for this machine's memory on ``n_ranks``
     ranks (``ranks_here`` of them on this machine): an estimate from measured bytes per rod /
@@ -289,6 +312,7 @@ def apply_settings(scene: dict, settings: list[str], restart: bool = False, bran
             raise _unknown(name, SCHEMA[section], where)
         scene[section] = _fill({**scene[section], name: value}, SCHEMA[section], where)
     StepControl(**scene["integrator"]).validate()      # the integrator's own cross-checks
+    _check_leg_integrators(scene)
     scene["settings"] = list(scene.get("settings", [])) + list(settings)
     return scene
 

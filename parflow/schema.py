@@ -35,7 +35,7 @@ def key(default, check: Callable | None = None, allowed: str = "", doc: str = ""
 POSITIVE = (lambda v: v > 0, "> 0")
 NON_NEGATIVE = (lambda v: v >= 0, ">= 0")
 
-_TYPES = {"float": float, "int": int, "str": str, "bool": bool, "list": list}
+_TYPES = {"float": float, "int": int, "str": str, "bool": bool, "list": list, "dict": dict}
 
 
 def table(cls) -> dict[str, Key]:

@@ -36,17 +36,12 @@ class BondedEngine:
 
     def __init__(self, comm, state: State, scene: dict, model, ck: dict | None = None):
         self.comm, self.state, self.model, self.scene = comm, state, model, scene
-        self.control = StepControl(**scene["integrator"])
-        self.control.validate()
         sol = scene["solver"]
         reuse = resolve_reuse(sol["reuse_factor"], len(state.bonds), sol["preset"],
                               model.FACTOR_REUSE)
         self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
-        err_prev = None if ck is None else ck.get("err_prev")
-        self.integ = INTEGRATORS[self.control.method](self.system, self.control,
-                          err_prev=float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None)
-        if ck is not None:
-            self.integ.recall(ck)
+        self.control, self.integ = None, None
+        self.use_integrator(None, ck)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
         # the engine owns the evolving state: state.s and state.gamma are always current
@@ -72,6 +67,31 @@ class BondedEngine:
     @property
     def parallel(self) -> str:
         return self.system.parallel
+
+    def use_integrator(self, leg_settings: dict | None, ck: dict | None = None) -> bool:
+        """Integrate with the scene's [integrator] keys and ``leg_settings`` (a leg's own
+        ``integrator`` table) over them.  From a checkpoint ``ck`` the integrator's memory
+        (err_prev, its own) is the checkpoint's; otherwise it carries over from the current
+        integrator when the method is the same (a new method starts without memory).  Nothing
+        changes when the settings are the current ones.  True if the integrator was rebuilt."""
+        control = StepControl(**{**self.scene["integrator"], **(leg_settings or {})})
+        control.validate()
+        if ck is None and control == self.control:
+            return False
+        old = self.integ
+        if ck is not None:
+            err_prev = ck.get("err_prev")
+            err_prev = float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None
+        else:
+            err_prev = old.err_prev if old is not None and control.method == self.control.method else None
+        integ = INTEGRATORS[control.method](self.system, control, err_prev=err_prev)
+        if ck is not None:
+            integ.recall(ck)
+        elif old is not None and type(old) is type(integ):
+            arrays, attrs = old.memory()
+            integ.recall({**arrays, **attrs})
+        self.control, self.integ = control, integ
+        return True
 
     def start(self):
         tau0, self._tau0 = self._tau0, None
@@ -214,6 +234,11 @@ class ContactEngine:
         return f"contact LCP (active set on {self.sim.factor})", {}
 
     # forces ------------------------------------------------------------------------
+    def use_integrator(self, leg_settings: dict | None, ck: dict | None = None) -> bool:
+        """No integrator: the contact step's controls are [model] keys (a leg's integrator
+        table is refused for this engine when the scene is loaded)."""
+        return False
+
     def probe(self, direction: int | None = None) -> ContactForce:
         """Contact forces at the current configuration for the step the stepper would take
         next, without moving (the first row, and the configuration analyses look at)."""

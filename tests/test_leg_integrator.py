@@ -1,0 +1,114 @@
+"""A leg's own integrator keys ([[protocol.leg]] integrator = {...}, over the scene's
+[integrator]): validation, that a leg runs exactly the integrator it names (the same legs
+written the other way round give the same run, bit for bit), and restart = uninterrupted
+inside a leg that changes the integrator."""
+import h5py
+import numpy as np
+import pytest
+
+from parflow.scene import load_scene
+from parflow.state import InputError
+from systems import run_scene
+
+SCENE = """
+seed = 1
+[model]
+name = "chain"
+N = 400
+epsilon = 0.1
+[[protocol.leg]]
+direction = "forward"
+V2_above = 1e6
+{leg0}
+[[protocol.leg]]
+direction = "reverse"
+V2_below = 1e3
+strain = 0.05
+{leg1}
+[integrator]
+{scene}
+[output]
+path = "{path}"
+checkpoint_every = 10
+"""
+RKC = 'method = "rkc", tol = 0.001'
+HEUN = 'method = "heun", tol = 0.01'
+
+
+def _scene(path, scene, leg0="", leg1=""):
+    return load_scene(SCENE.format(path=path, scene=scene.replace(", ", "\n"),
+                                   leg0=f"integrator = {{ {leg0} }}" if leg0 else "",
+                                   leg1=f"integrator = {{ {leg1} }}" if leg1 else ""))
+
+
+def _series(path):
+    with h5py.File(path, "r") as f:
+        ts = f["timeseries"]
+        return {k: ts[k][:] for k in ("gamma", "V2", "err", "leg", "rejected")}
+
+
+def test_leg_integrator_is_validated():
+    ok = _scene("x.h5", RKC, leg1=HEUN)
+    assert ok["protocol"]["leg"][1]["integrator"] == {"method": "heun", "tol": 0.01}
+    assert "integrator" not in ok["protocol"]["leg"][0]
+    assert ok["integrator"]["method"] == "rkc"                  # the scene's table is untouched
+    for leg1, match in [('method = "euler"', r"protocol.leg\[1\].integrator.method"),
+                        ("tol = -1.0", r"protocol.leg\[1\].integrator.tol"),
+                        ("toll = 0.1", r"protocol.leg\[1\].integrator.*toll"),
+                        ('preset = "fast"', r"protocol.leg\[1\].integrator.preset"),
+                        ("min_dgamma = 1.0", r"protocol.leg\[1\].*min_dgamma")]:
+        with pytest.raises(InputError, match=match):
+            _scene("x.h5", RKC, leg1=leg1)
+    with pytest.raises(InputError, match=r"protocol.leg\[1\].integrator must be"):
+        load_scene(SCENE.format(path="x.h5", scene="", leg0="", leg1="integrator = 3"))
+    susp = """
+seed = 1
+[model]
+name = "suspension"
+N = 64
+phi = 0.8
+[[protocol.leg]]
+direction = "forward"
+strain = 0.01
+integrator = { method = "heun" }
+"""
+    with pytest.raises(InputError, match=r"protocol.leg\[0\].integrator: the suspension model has no integrator"):
+        load_scene(susp)
+
+
+def test_each_leg_runs_the_integrator_it_names(mpi_tmp_path, comm):
+    """RKC forward then Heun reversed, written as scene RKC + leg Heun and as scene Heun + leg
+    RKC: the same run bit for bit; its forward leg is the all-RKC run's, its reversed leg not."""
+    a, b, c = (str(mpi_tmp_path / f"{x}.h5") for x in "abc")
+    assert run_scene(_scene(a, RKC, leg1=HEUN)) == "complete"
+    assert run_scene(_scene(b, HEUN, leg0=RKC)) == "complete"
+    assert run_scene(_scene(c, RKC)) == "complete"
+    comm.barrier()
+    A, B, C = _series(a), _series(b), _series(c)
+    for k in A:
+        np.testing.assert_array_equal(A[k], B[k])
+    fw = A["leg"] == 0
+    n = int(fw.sum())
+    np.testing.assert_array_equal(A["gamma"][:n], C["gamma"][:n])
+    assert np.all(C["leg"][:n] == 0)
+    rv = A["leg"] == 1
+    assert rv.sum() > 5
+    # Heun (tol 0.01) takes more, shorter steps on the reversed leg than RKC (tol 0.001)
+    assert rv.sum() != (C["leg"] == 1).sum() or not np.array_equal(A["gamma"][rv], C["gamma"][C["leg"] == 1])
+
+
+def test_restart_inside_a_leg_with_its_own_integrator(mpi_tmp_path, comm):
+    whole, part = str(mpi_tmp_path / "whole.h5"), str(mpi_tmp_path / "part.h5")
+    assert run_scene(_scene(whole, HEUN, leg0=RKC)) == "complete"
+    comm.barrier()
+    W = _series(whole)
+    n_fw = int((W["leg"] == 0).sum())
+    # stop in the forward (RKC) leg, restart, and again in the reversed (Heun) leg
+    for stop in (n_fw // 2, n_fw + 4):
+        run_scene(_scene(part, HEUN, leg0=RKC), max_steps=stop, restart=stop != n_fw // 2)
+        comm.barrier()
+    assert run_scene(_scene(part, HEUN, leg0=RKC), restart=True) == "complete"
+    comm.barrier()
+    P = _series(part)
+    for k in ("gamma", "V2", "err"):
+        np.testing.assert_array_equal(P[k], W[k])
