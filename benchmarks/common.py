@@ -29,6 +29,27 @@ strain = 1.0
 path = "{path}"
 """
 
+# the same with the forward leg split at sigma = {split}: the scene's [integrator] ({settings})
+# up to there, the legs' own integrator keys ({near}, a TOML inline table's contents) from there
+# on, through the turn and the reversed leg
+FORWARD_SPLIT_AND_BACK = NETWORK_MODEL + """[[protocol.leg]]
+direction = "forward"
+sigma_above = {split:g}
+[[protocol.leg]]
+direction = "forward"
+sigma_above = 1e6
+integrator = {{ {near} }}
+[[protocol.leg]]
+direction = "reverse"
+sigma_below = 10
+sigma_above = 1e7
+strain = 1.0
+integrator = {{ {near} }}
+{settings}
+[output]
+path = "{path}"
+"""
+
 
 def network_file(folder: str, n: int, comm) -> str:
     """The N-node network of the benchmarks (packing at phi = 0.88, WLKM dilution to z = 3.8,

@@ -30,9 +30,11 @@ previous stage's tau (dynamics.bonded, STAGE_MAX_IT); the step's last force is a
 factorisation.
 Rod lengths and sigma identity: as every bonded step (projection, and sigma computed from the
 final force solve).
-Not for networks yet: on an N = 4 096 network RKC2 agrees with Heun on sigma(gamma) forward
-(gamma at sigma = 1e6 to 1e-10) but its reversed branch's C is 7-9 % above Heun's converged
-value at every tolerance tried (docs/benchmarks.md, "Integrators on a network").
+Not for reversed networks: on an N = 4 096 network RKC2 agrees with Heun on sigma(gamma)
+forward (gamma at sigma = 1e6 to 1e-10) but its reversed branch's C is 7-9 % above Heun's at
+every tolerance tried.  The reversed branch has two outcomes (C ~ 0.039 and ~ 0.0415) and the
+forward integration selects one; turn states 7e-7 a0 apart land on different ones
+(docs/benchmarks.md, "Integrators on a network").
 """
 from __future__ import annotations
 
