@@ -70,6 +70,10 @@ class LegRule:
     V2_below: float = key(None, *POSITIVE, "stop when <V^2> <= this")
     strain: float = key(None, *POSITIVE, "stop after this much strain in the leg")
     max_steps: int = key(None, *POSITIVE, "stop after this many steps in the leg")
+    perturb: float = key(None, *NON_NEGATIVE,
+                         "at the start of this leg, displace every node by a Gaussian vector of "
+                         "this rms per coordinate (a0; seeded by the scene's seed and the leg's "
+                         "index), rod lengths restored (bonded models; 0: nothing)")
     integrator: dict = key(None, lambda v: len(v) > 0, "a non-empty table of [integrator] keys",
                            "this leg's [integrator] keys, over the scene's (bonded models), "
                            "e.g. integrator = { method = \"heun\" }")

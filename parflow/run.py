@@ -206,6 +206,17 @@ class Run:
                 if lost and not full:        # (full: the WriteError's line says it)
                     log.warning("WARNING: %s", lost)
 
+        def perturb():
+            """The current leg's ``perturb``, at its start (before its first step)."""
+            rms = legs[clock.leg].spec.get("perturb", 0.0) if clock.leg < len(legs) else 0.0
+            if rms > 0:
+                moved = eng.perturb(rms, scene["seed"], clock.leg)
+                log.info("leg %d/%d: nodes displaced by %.3g a0 rms (perturb = %g), rod lengths "
+                         "restored", clock.leg + 1, len(legs), moved, rms)
+            return rms > 0
+
+        if ck is None:
+            perturb()
         obs = eng.observe()
         leg_obs0 = dict(obs)
         if ck is None:
@@ -230,6 +241,8 @@ class Run:
                             log.info("leg %d/%d: integrator %s", clock.leg + 1, len(legs),
                                      ", ".join(f"{k} = {v}" for k, v in legs[clock.leg].spec.get("integrator", {}).items())
                                      or "as [integrator]")
+                        if perturb():
+                            obs = eng.observe()
                         leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, EtaEstimate()
                         continue
                     cap = leg.spec["strain"] - clock.leg_strain if "strain" in leg.spec else None

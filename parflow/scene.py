@@ -242,6 +242,9 @@ def _check_leg_integrators(scene: dict) -> None:
     """A leg's ``integrator`` table: [integrator] keys (no preset), typed and range-checked as
     there, merged over the scene's and cross-checked; only for the bonded models."""
     for k, leg in enumerate(scene["protocol"]["leg"]):
+        if leg.get("perturb") and get_model(scene["model"]["name"]).ENGINE != "bonded":
+            raise InputError(f"protocol.leg[{k}].perturb: only for bonded models (chain, "
+                             f"network): a displaced {scene['model']['name']} would overlap")
         if "integrator" not in leg:
             continue
         where = f"protocol.leg[{k}].integrator."

@@ -1,7 +1,9 @@
 """A leg's own integrator keys ([[protocol.leg]] integrator = {...}, over the scene's
 [integrator]): validation, that a leg runs exactly the integrator it names (the same legs
 written the other way round give the same run, bit for bit), and restart = uninterrupted
-inside a leg that changes the integrator."""
+inside a leg that changes the integrator; and a leg's perturb (a seeded displacement of
+the nodes at its start).
+"""
 import h5py
 import numpy as np
 import pytest
@@ -112,3 +114,52 @@ def test_restart_inside_a_leg_with_its_own_integrator(mpi_tmp_path, comm):
     P = _series(part)
     for k in ("gamma", "V2", "err"):
         np.testing.assert_array_equal(P[k], W[k])
+
+
+def _perturbed(path, rms):
+    return load_scene(SCENE.format(path=path, scene=HEUN.replace(", ", "\n"), leg0="",
+                                   leg1=f"perturb = {rms}" if rms is not None else ""))
+
+
+def test_perturb_at_the_start_of_a_leg(mpi_tmp_path, comm):
+    """perturb = rms displaces the nodes once, at the leg's start: the forward leg is
+    untouched, the reversed one starts elsewhere with rigid rods, the same seed gives the same
+    numbers, perturb = 0 is no perturbation, and a restart inside the leg continues it."""
+    p = {k: str(mpi_tmp_path / f"{k}.h5") for k in ("none", "zero", "a", "b", "part")}
+    for k, rms in (("none", None), ("zero", 0.0), ("a", 1e-3), ("b", 1e-3)):
+        assert run_scene(_perturbed(p[k], rms)) == "complete"
+    comm.barrier()
+    R = {k: _series(p[k]) for k in ("none", "zero", "a", "b")}
+    for k in R["none"]:
+        np.testing.assert_array_equal(R["zero"][k], R["none"][k])
+        np.testing.assert_array_equal(R["a"][k], R["b"][k])
+    n = int((R["none"]["leg"] == 0).sum())
+    np.testing.assert_array_equal(R["a"]["gamma"][:n], R["none"]["gamma"][:n])
+    assert not np.array_equal(R["a"]["V2"][n:n + 5], R["none"]["V2"][n:n + 5])
+    with h5py.File(p["a"], "r") as f:
+        assert np.max(f["timeseries/length_error"][:]) <= 1e-11
+    run_scene(_perturbed(p["part"], 1e-3), max_steps=n + 3)
+    comm.barrier()
+    assert run_scene(_perturbed(p["part"], 1e-3), restart=True) == "complete"
+    comm.barrier()
+    P = _series(p["part"])
+    for k in ("gamma", "V2"):
+        np.testing.assert_array_equal(P[k], R["a"][k])
+
+
+def test_perturb_is_validated():
+    with pytest.raises(InputError, match=r"protocol.leg\[1\].perturb"):
+        _perturbed("x.h5", -1.0)
+    susp = """
+seed = 1
+[model]
+name = "suspension"
+N = 64
+phi = 0.8
+[[protocol.leg]]
+direction = "forward"
+strain = 0.01
+perturb = 1e-6
+"""
+    with pytest.raises(InputError, match=r"protocol.leg\[0\].perturb: only for bonded"):
+        load_scene(susp)

@@ -93,6 +93,20 @@ class BondedEngine:
         self.control, self.integ = control, integ
         return True
 
+    def perturb(self, rms: float, seed: int, leg: int) -> float:
+        """Displace every node by a Gaussian vector of ``rms`` a0 per coordinate (the same
+        numbers on every rank: seeded by (seed, leg)), restore the rod lengths and solve the
+        force there; the rms displacement after the projection."""
+        rng = np.random.default_rng([int(seed) % 2**63, int(leg), 0x9E3779B9])
+        h = self.F.h
+        r0 = self.s @ h.T
+        s = self.s + rms * rng.standard_normal(self.s.shape) @ np.linalg.inv(h).T
+        s, _, _ = self.system.project(s, self.gamma, tol=self.control.length_tol)
+        self.state.s = s
+        self.F = self.system.evaluate(s, self.gamma, what="perturbed force")
+        d = s @ h.T - r0
+        return float(np.sqrt(np.mean(np.einsum("id,id->i", d, d))))
+
     def start(self):
         tau0, self._tau0 = self._tau0, None
         if tau0 is not None and np.shape(tau0) == (len(self.state.bonds),):
@@ -234,6 +248,9 @@ class ContactEngine:
         return f"contact LCP (active set on {self.sim.factor})", {}
 
     # forces ------------------------------------------------------------------------
+    def perturb(self, rms: float, seed: int, leg: int) -> float:
+        raise NotImplementedError("perturb: bonded models only (refused when the scene is loaded)")
+
     def use_integrator(self, leg_settings: dict | None, ck: dict | None = None) -> bool:
         """No integrator: the contact step's controls are [model] keys (a leg's integrator
         table is refused for this engine when the scene is loaded)."""
