@@ -74,6 +74,8 @@ class LegRule:
                          "at the start of this leg, displace every node by a Gaussian vector of "
                          "this rms per coordinate (a0; seeded by the scene's seed and the leg's "
                          "index), rod lengths restored (bonded models; 0: nothing)")
+    perturb_seed: int = key(None, *NON_NEGATIVE, "the seed of perturb's displacement "
+                            "(default: the scene's seed)")
     integrator: dict = key(None, lambda v: len(v) > 0, "a non-empty table of [integrator] keys",
                            "this leg's [integrator] keys, over the scene's (bonded models), "
                            "e.g. integrator = { method = \"heun\" }")

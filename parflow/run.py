@@ -210,7 +210,8 @@ class Run:
             """The current leg's ``perturb``, at its start (before its first step)."""
             rms = legs[clock.leg].spec.get("perturb", 0.0) if clock.leg < len(legs) else 0.0
             if rms > 0:
-                moved = eng.perturb(rms, scene["seed"], clock.leg)
+                moved = eng.perturb(rms, legs[clock.leg].spec.get("perturb_seed", scene["seed"]),
+                                    clock.leg)
                 log.info("leg %d/%d: nodes displaced by %.3g a0 rms (perturb = %g), rod lengths "
                          "restored", clock.leg + 1, len(legs), moved, rms)
             return rms > 0

@@ -128,8 +128,12 @@ def test_perturb_at_the_start_of_a_leg(mpi_tmp_path, comm):
     p = {k: str(mpi_tmp_path / f"{k}.h5") for k in ("none", "zero", "a", "b", "part")}
     for k, rms in (("none", None), ("zero", 0.0), ("a", 1e-3), ("b", 1e-3)):
         assert run_scene(_perturbed(p[k], rms)) == "complete"
+    other = _perturbed(str(mpi_tmp_path / "c.h5"), 1e-3)
+    other["protocol"]["leg"][1]["perturb_seed"] = 5
+    assert run_scene(other) == "complete"
     comm.barrier()
     R = {k: _series(p[k]) for k in ("none", "zero", "a", "b")}
+    assert not np.array_equal(_series(str(mpi_tmp_path / "c.h5"))["V2"], R["a"]["V2"])
     for k in R["none"]:
         np.testing.assert_array_equal(R["zero"][k], R["none"][k])
         np.testing.assert_array_equal(R["a"][k], R["b"][k])
