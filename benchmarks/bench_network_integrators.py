@@ -62,6 +62,12 @@ SPLIT_CASES = {
 }
 for _name, (_scene, _split, _near) in SPLIT_CASES.items():
     CASES[_name] = f"{_scene}; to sigma = {_split:g}, then {_near}".replace("\n", "; ")
+# the reversed leg seeded: perturb = ETA a0 at the turn with perturb_seed k (the leg's keys),
+# Heun and RKC2 at their defaults -- does the seed or the integrator select the branch?
+PERTURB_ETA, PERTURB_SEEDS = 3e-4, (1, 2, 3, 4)
+PERTURB_CASES = {f"{m}_seeded_{k}": (m, k) for m in ("heun", "rkc") for k in PERTURB_SEEDS}
+for _name, (_m, _k) in PERTURB_CASES.items():
+    CASES[_name] = CASES[_m] + f"; reversed leg: perturb = {PERTURB_ETA:g}, perturb_seed = {_k}"
 DEFAULT_CASES = ("heun", "heun_stages", "rkc", "rkc_stages", "rkc_2stages", "ref_heun", "ref_rkc")
 C_WINDOW = (1e5, 1e3)
 
@@ -89,6 +95,12 @@ def run(folder, n, network, case):
         settings, split, near = SPLIT_CASES[case]
         text = FORWARD_SPLIT_AND_BACK.format(n=n, network=network, path=path, split=split,
                                              near=near, settings="[integrator]\n" + settings)
+    elif case in PERTURB_CASES:
+        m, k = PERTURB_CASES[case]
+        text = FORWARD_AND_BACK.format(n=n, network=network, path=path,
+                                       settings="[integrator]\n" + CASES[m])
+        text = text.replace('direction = "reverse"', f'direction = "reverse"\nperturb = '
+                            f'{PERTURB_ETA!r}\nperturb_seed = {k}')
     else:
         text = FORWARD_AND_BACK.format(n=n, network=network, path=path,
                                        settings="[integrator]\n" + CASES[case])

@@ -32,8 +32,9 @@ Rod lengths and sigma identity: as every bonded step (projection, and sigma comp
 final force solve).
 Not for reversed networks: on an N = 4 096 network RKC2 agrees with Heun on sigma(gamma)
 forward (gamma at sigma = 1e6 to 1e-10) but its reversed branch's C is 7-9 % above Heun's at
-every tolerance tried.  The reversed branch has two outcomes (C ~ 0.039 and ~ 0.0415) and the
-forward integration selects one; turn states 7e-7 a0 apart land on different ones
+every tolerance tried: the reversed branch depends on what seeds the reversal, and unseeded
+that is each integrator's own error (turn states 7e-7 a0 apart reverse differently); with
+the reversal seeded (leg key perturb = 3e-4) Heun and RKC2 agree per seed to 2.5 %
 (docs/benchmarks.md, "Integrators on a network").
 """
 from __future__ import annotations
