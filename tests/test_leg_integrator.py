@@ -33,6 +33,17 @@ strain = 0.05
 path = "{path}"
 checkpoint_every = 10
 """
+# a suspension scene's one leg, open for one more leg key
+SUSPENSION = """
+seed = 1
+[model]
+name = "suspension"
+N = 64
+phi = 0.8
+[[protocol.leg]]
+direction = "forward"
+strain = 0.01
+"""
 RKC = 'method = "rkc", tol = 0.001'
 HEUN = 'method = "heun", tol = 0.01'
 
@@ -63,17 +74,7 @@ def test_leg_integrator_is_validated():
             _scene("x.h5", RKC, leg1=leg1)
     with pytest.raises(InputError, match=r"protocol.leg\[1\].integrator must be"):
         load_scene(SCENE.format(path="x.h5", scene="", leg0="", leg1="integrator = 3"))
-    susp = """
-seed = 1
-[model]
-name = "suspension"
-N = 64
-phi = 0.8
-[[protocol.leg]]
-direction = "forward"
-strain = 0.01
-integrator = { method = "heun" }
-"""
+    susp = SUSPENSION + 'integrator = { method = "heun" }\n'
     with pytest.raises(InputError, match=r"protocol.leg\[0\].integrator: the suspension model has no integrator"):
         load_scene(susp)
 
@@ -154,16 +155,6 @@ def test_perturb_at_the_start_of_a_leg(mpi_tmp_path, comm):
 def test_perturb_is_validated():
     with pytest.raises(InputError, match=r"protocol.leg\[1\].perturb"):
         _perturbed("x.h5", -1.0)
-    susp = """
-seed = 1
-[model]
-name = "suspension"
-N = 64
-phi = 0.8
-[[protocol.leg]]
-direction = "forward"
-strain = 0.01
-perturb = 1e-6
-"""
+    susp = SUSPENSION + "perturb = 1e-6\n"
     with pytest.raises(InputError, match=r"protocol.leg\[0\].perturb: only for bonded"):
         load_scene(susp)
