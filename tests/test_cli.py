@@ -154,7 +154,11 @@ def _signal_mid_run(tmp_path, sig):
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     cmd = [sys.executable, "-m", "parflow.shear", str(scene_file(tmp_path, text)),
            "--output", str(out), "--quiet", "--no-plots"]
-    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    import signal
+    # SIGINT at its default in the child even when this test runs in a background job (there
+    # it is inherited as ignored, and parflow rightly keeps an ignored SIGINT ignored)
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.time() + 60
         while time.time() < deadline:
@@ -168,7 +172,12 @@ def _signal_mid_run(tmp_path, sig):
         time.sleep(0.7)
     finally:
         proc.send_signal(sig)
-        _, err = proc.communicate(timeout=60)
+        try:
+            _, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()                   # no run left behind by a failing test
+            proc.communicate()
+            raise
     return proc.returncode, err, out
 
 
