@@ -67,8 +67,11 @@ def _wait_for_rows(proc, out, rows=5, timeout=60.0):
 def _signal_run(cmd, out, sig, group=False):
     """Run ``cmd``, send ``sig`` once it has made progress (to its whole process group if
     ``group``: what a terminal's Ctrl-C does); returns (exit status, stderr)."""
+    # SIGINT at its default in the child even when the suite runs in a background job (which
+    # inherits it ignored; parflow and the shell keep an ignored SIGINT ignored)
     proc = subprocess.Popen(cmd, env=_env(), cwd=ROOT, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, start_new_session=group)
+                            stderr=subprocess.PIPE, text=True, start_new_session=group,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         _wait_for_rows(proc, out)
         if group:
