@@ -9,7 +9,7 @@ rms eta a0 per coordinate (seeded), the rod lengths restored -- then the rest of
 reversed leg as in the scene.  For each
 integrator and tolerance, and each eta (0: no displacement, the integrator's own error is
 the only seed), the departure strain: where |ln V2_rev - ln V2_fwd| at the same gamma first
-exceeds 0.1, interpolated in log between the rows around it (:func:`departure`).  If the reversed flow amplifies a seed at a rate lambda, the
+exceeds 0.1, interpolated in log between the rows around it (``bench_stiff.departure``).  If the reversed flow amplifies a seed at a rate lambda, the
 departure is x0 + ln(1/eta) / lambda: converged *given eta* when every integrator agrees at
 that eta, and the unseeded runs tell which eta each integrator's own error amounts to.
 Writes docs/benchmarks/departure.json.
@@ -30,6 +30,7 @@ import h5py
 import numpy as np
 
 import results  # noqa: E402  (benchmarks/results.py)
+from bench_stiff import departure  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from parflow.scene import DEFAULT_SCENE  # noqa: E402
@@ -54,26 +55,6 @@ V2_below = 1.0
 """
 
 
-def departure(d, level: float = 0.1) -> float:
-    """Strain since the reversal where |ln V2_rev - ln V2_fwd| (the forward branch interpolated
-    to the reversed row's gamma) first exceeds ``level``; between rows, log-linear in the
-    deviation (it grows exponentially)."""
-    f, r = d["direction"] > 0, d["direction"] < 0
-    gf, vf = d["gamma"][f], d["V2"][f]
-    g_turn = gf[-1]
-    gr, vr = d["gamma"][r], d["V2"][r]
-    ok = gr >= gf[0]
-    x = g_turn - gr[ok]
-    dev = np.abs(np.log(vr[ok]) - np.interp(gr[ok], gf, np.log(vf)))
-    if not np.any(dev > level):
-        return float("nan")
-    k = int(np.argmax(dev > level))
-    if k == 0 or dev[k - 1] <= 0:
-        return float(x[k])
-    a, b = np.log(dev[k - 1]), np.log(dev[k])
-    return float(x[k - 1] + (np.log(level) - a) / (b - a) * (x[k] - x[k - 1]))
-
-
 DEFAULT_RUNS = ("rkc:0.001:0,1e-10,1e-9,1e-8,1e-7,1e-6;rkc:0.0003:0,1e-8,1e-6;rkc:0.0001:0,1e-8;"
                 "rkc:0.00003:0;"
                 "heun:0.01:0,1e-8,1e-6;heun:0.002:0,1e-6")
@@ -95,7 +76,7 @@ def run(method: str, tol: float, eta: float, out: str) -> dict:
         status, steps = str(f.attrs["status"]), int(f.attrs["steps"])
     rv = d["direction"] < 0
     return dict(method=method, tol=tol, eta=eta, status=status, steps=steps,
-                wall_seconds=round(wall, 2), departure_strain=departure(d),
+                wall_seconds=round(wall, 2), departure_strain=departure(d, interpolate=True),
                 first_reverse_step=float(abs(d["dgamma"][rv][0])) if rv.any() else float("nan"))
 
 

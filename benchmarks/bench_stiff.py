@@ -49,8 +49,11 @@ def forward_error(d, ref) -> float:
     return float(np.max(np.abs(np.log(v[ok] / vr))))
 
 
-def departure(d, level: float = 0.1) -> float:
-    """Strain since the reversal where the reversed branch leaves the forward one."""
+def departure(d, level: float = 0.1, interpolate: bool = False) -> float:
+    """Strain since the reversal where the reversed branch leaves the forward one: the first
+    reversed row where |ln V2_rev - ln V2_fwd| (the forward branch interpolated to the row's
+    gamma) exceeds ``level``; with ``interpolate``, the crossing between that row and the one
+    before, log-linear in the deviation (it grows exponentially)."""
     f, r = d["direction"] > 0, d["direction"] < 0
     if not r.any():
         return float("nan")
@@ -58,9 +61,15 @@ def departure(d, level: float = 0.1) -> float:
     g_turn = gf[-1]
     gr, vr = d["gamma"][r], d["V2"][r]
     ok = gr >= gf[0]
+    x = g_turn - gr[ok]
     dev = np.abs(np.log(vr[ok]) - np.interp(gr[ok], gf, np.log(vf)))
-    k = int(np.argmax(dev > level)) if np.any(dev > level) else -1
-    return float(g_turn - gr[ok][k]) if k >= 0 else float("nan")
+    if not np.any(dev > level):
+        return float("nan")
+    k = int(np.argmax(dev > level))
+    if not interpolate or k == 0 or dev[k - 1] <= 0:
+        return float(x[k])
+    a, b = np.log(dev[k - 1]), np.log(dev[k])
+    return float(x[k - 1] + (np.log(level) - a) / (b - a) * (x[k] - x[k - 1]))
 
 
 def main():
