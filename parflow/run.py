@@ -91,8 +91,24 @@ class Run:
         state = eng.state
         legs = [Leg(x, k, len(scene["protocol"]["leg"])) for k, x in enumerate(scene["protocol"]["leg"])]
         clock = Clock() if ck is None else Clock.restore(ck)
-        if clock.leg < len(legs):       # the current leg's own integrator keys (bonded models)
-            eng.use_integrator(legs[clock.leg].spec.get("integrator"), ck)
+
+        def begin_leg(ck=None) -> bool:
+            """The current leg's own keys (bonded models): its integrator settings, and -- when
+            the leg really begins, not on a restart inside it (``ck``) -- its perturb.  True if
+            the nodes were displaced."""
+            if clock.leg >= len(legs):
+                return False
+            spec = legs[clock.leg].spec
+            if eng.use_integrator(spec.get("integrator"), ck) and ck is None:
+                log.info("leg %d/%d: integrator %s", clock.leg + 1, len(legs),
+                         ", ".join(f"{k} = {v}" for k, v in spec.get("integrator", {}).items())
+                         or "as [integrator]")
+            rms = spec.get("perturb", 0.0) if ck is None else 0.0
+            if rms > 0:
+                moved = eng.perturb(rms, spec.get("perturb_seed", scene["seed"]), clock.leg)
+                log.info("leg %d/%d: nodes displaced by %.3g a0 rms (perturb = %g), rod lengths "
+                         "restored", clock.leg + 1, len(legs), moved, rms)
+            return rms > 0
 
         # the schedule (protocol triggers); their memory is restored from the checkpoint
         omega_due = Every(cfg["omega_min_every"])
@@ -206,18 +222,7 @@ class Run:
                 if lost and not full:        # (full: the WriteError's line says it)
                     log.warning("WARNING: %s", lost)
 
-        def perturb():
-            """The current leg's ``perturb``, at its start (before its first step)."""
-            rms = legs[clock.leg].spec.get("perturb", 0.0) if clock.leg < len(legs) else 0.0
-            if rms > 0:
-                moved = eng.perturb(rms, legs[clock.leg].spec.get("perturb_seed", scene["seed"]),
-                                    clock.leg)
-                log.info("leg %d/%d: nodes displaced by %.3g a0 rms (perturb = %g), rod lengths "
-                         "restored", clock.leg + 1, len(legs), moved, rms)
-            return rms > 0
-
-        if ck is None:
-            perturb()
+        begin_leg(ck)
         obs = eng.observe()
         leg_obs0 = dict(obs)
         if ck is None:
@@ -238,11 +243,7 @@ class Run:
                                  len(legs), leg.spec["direction"], clock.step, eng.gamma, why)
                         analyse(obs)
                         clock.next_leg()
-                        if clock.leg < len(legs) and eng.use_integrator(legs[clock.leg].spec.get("integrator")):
-                            log.info("leg %d/%d: integrator %s", clock.leg + 1, len(legs),
-                                     ", ".join(f"{k} = {v}" for k, v in legs[clock.leg].spec.get("integrator", {}).items())
-                                     or "as [integrator]")
-                        if perturb():
+                        if begin_leg():
                             obs = eng.observe()
                         leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, EtaEstimate()
                         continue

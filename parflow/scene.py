@@ -240,15 +240,17 @@ def _legs(legs) -> list:
 
 def _check_leg_integrators(scene: dict) -> None:
     """A leg's ``integrator`` table: [integrator] keys (no preset), typed and range-checked as
-    there, merged over the scene's and cross-checked; only for the bonded models."""
+    there, merged over the scene's and cross-checked; it and ``perturb`` only for the bonded
+    models."""
+    bonded = get_model(scene["model"]["name"]).ENGINE == "bonded"
     for k, leg in enumerate(scene["protocol"]["leg"]):
-        if leg.get("perturb") and get_model(scene["model"]["name"]).ENGINE != "bonded":
+        if leg.get("perturb") and not bonded:
             raise InputError(f"protocol.leg[{k}].perturb: only for bonded models (chain, "
                              f"network): a displaced {scene['model']['name']} would overlap")
         if "integrator" not in leg:
             continue
         where = f"protocol.leg[{k}].integrator."
-        if get_model(scene["model"]["name"]).ENGINE != "bonded":
+        if not bonded:
             raise InputError(f"{where[:-1]}: the {scene['model']['name']} model has no "
                              "integrator (its step is controlled by [model] keys); remove it")
         if "preset" in leg["integrator"]:

@@ -79,15 +79,16 @@ class BondedEngine:
         if ck is None and control == self.control:
             return False
         old = self.integ
+        same = old is not None and control.method == self.control.method
         if ck is not None:
             err_prev = ck.get("err_prev")
             err_prev = float(err_prev) if err_prev is not None and np.isfinite(err_prev) else None
         else:
-            err_prev = old.err_prev if old is not None and control.method == self.control.method else None
+            err_prev = old.err_prev if same else None
         integ = INTEGRATORS[control.method](self.system, control, err_prev=err_prev)
         if ck is not None:
             integ.recall(ck)
-        elif old is not None and type(old) is type(integ):
+        elif same:
             arrays, attrs = old.memory()
             integ.recall({**arrays, **attrs})
         self.control, self.integ = control, integ
