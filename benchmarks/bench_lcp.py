@@ -9,6 +9,8 @@ solves, factorisations, and the largest difference of V = S^T f from the recorde
 
     python benchmarks/bench_lcp.py out/fig6_suspension_phi0.840.h5 --steps 40
     python benchmarks/bench_lcp.py          # makes out/bench_lcp_phi0.840.h5 first (300 steps)
+    python benchmarks/bench_lcp.py --strategies RUN [RUN ...] --steps 60
+        # block pivoting / projected Newton / Lawson-Hanson on the same LCPs of each run
 """
 from __future__ import annotations
 
@@ -64,7 +66,15 @@ def record(path: str, steps: int) -> tuple[list, dict]:
     return out, meta
 
 
-def measure(instances: list, max_border: int) -> dict:
+# the pivoting strategies compared by --strategies (keyword arguments of solve_lcp)
+STRATEGIES = {
+    "bpp30-lh": dict(bpp_max=30, newton_max=0),          # the solver before 2026-12-02
+    "bpp30-newton": dict(bpp_max=30, newton_max=150),
+    "bpp2-newton": dict(bpp_max=2, newton_max=150),      # the default since 2026-12-02
+}
+
+
+def measure(instances: list, max_border: int = 80, **lcp_kw) -> dict:
     import parflow.dynamics.lcp as co
 
     init = co.ActiveSolver.__init__
@@ -75,11 +85,11 @@ def measure(instances: list, max_border: int) -> dict:
 
     co.ActiveSolver.__init__ = patched
     try:
-        wall, solves, facts, bordered, fails, dv = 0.0, 0, 0, 0, 0, 0.0
+        wall, solves, facts, bordered, fails, dv, newton, modes = 0.0, 0, 0, 0, 0, 0.0, 0, {}
         for S, q, warm, f_ref in instances:
             t0 = time.perf_counter()
             try:
-                f, info = co.solve_lcp(S, q, warm)
+                f, info = co.solve_lcp(S, q, warm, **lcp_kw)
             except co.LCPFailure:
                 fails += 1
                 wall += time.perf_counter() - t0
@@ -88,6 +98,8 @@ def measure(instances: list, max_border: int) -> dict:
             solves += info.iterations
             facts += info.factorizations
             bordered += info.bordered
+            newton += info.newton
+            modes[info.mode] = modes.get(info.mode, 0) + 1
             V, Vr = S.T @ f, S.T @ f_ref
             dv = max(dv, float(np.abs(V - Vr).max() / max(np.abs(Vr).max(), 1e-300)))
     finally:
@@ -96,7 +108,28 @@ def measure(instances: list, max_border: int) -> dict:
     return dict(max_border=max_border, lcps=n, wall_s=round(wall, 3),
                 ms_per_lcp=round(1e3 * wall / n, 1), solves_per_lcp=round(solves / n, 1),
                 factorisations_per_lcp=round(facts / n, 2),
-                bordered_per_lcp=round(bordered / n, 1), failures=fails, max_rel_dV=dv)
+                bordered_per_lcp=round(bordered / n, 1), newton_per_lcp=round(newton / n, 1),
+                modes=modes, failures=fails, max_rel_dV=dv, **lcp_kw)
+
+
+def strategies(runs: list, steps: int) -> int:
+    """Each strategy on the same recorded LCPs of each run file (recorded with the default)."""
+    missing = [r for r in runs if not os.path.exists(r)]
+    if missing:
+        print(f"bench_lcp: no such run file {missing[0]!r}", file=sys.stderr)
+        return 2
+    cases = []
+    for run in runs:
+        instances, meta = record(run, steps)
+        rows = []
+        for name, kw in STRATEGIES.items():
+            rows.append(dict(strategy=name, **measure(instances, **kw)))
+            print(meta["file"], rows[-1])
+        cases.append(dict(meta, rows=rows))
+    data = dict(cases=cases, measured=time.strftime("%Y-%m-%d %H:%M:%S"),
+                loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp_strategies", data))
+    return 0
 
 
 def main(argv=None) -> int:
@@ -107,7 +140,13 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--borders", default="0,20,80,200",
                     help="max_border values to compare (0: a fresh factorisation every solve)")
+    ap.add_argument("--strategies", nargs="+", metavar="RUN",
+                    help="compare the pivoting strategies (STRATEGIES: block pivoting, projected "
+                         "Newton, Lawson-Hanson) on the LCPs of --steps steps from each of these "
+                         "run files instead; writes docs/benchmarks/lcp_strategies.json")
     a = ap.parse_args(argv)
+    if a.strategies:
+        return strategies(a.strategies, a.steps)
     if not os.path.exists(a.run):
         if a.run != DEFAULT_RUN:
             print(f"bench_lcp: no such run file {a.run!r}", file=sys.stderr)

@@ -178,6 +178,27 @@ def lcp_section(d):
     return out
 
 
+def lcp_strategies_section(d):
+    out = ["## Contact LCP: block pivoting, projected Newton, Lawson-Hanson (`bench_lcp.py --strategies`)", "",
+           "For each run file, the LCPs of a stretch of suspension steps from its checkpoint (recorded "
+           "with the default solver), each solved again with each pivoting strategy, one process, "
+           "max_border = 80.  `bpp30-lh`: block pivoting for up to 30 solves, then Lawson-Hanson "
+           "(the solver before 2026-12-02); `bpp30-newton`: the projected-Newton phase in between; "
+           "`bpp2-newton` (default): block pivoting handed over after 2 solves.  Failures: LCPs "
+           "given up (the step would retry at Δγ/10).  max |ΔV|/|V| against the recorded solution.", "",
+           "| run (N, φ, γ) | strategy | ms per LCP | solves per LCP | of them Newton | factorisations per LCP | ended in | failures | max \\|ΔV\\|/\\|V\\| |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for c in d["cases"]:
+        where = f"`{os.path.basename(c['file'])}` ({c['N']}, {c['phi']:.3f}, {c['gamma_from']:.3f} → {c['gamma_to']:.3f})"
+        for r in c["rows"]:
+            ended = ", ".join(f"{k} {v}" for k, v in sorted(r["modes"].items()))
+            out.append(f"| {where} | {r['strategy']} | {r['ms_per_lcp']:.0f} | {r['solves_per_lcp']:.1f} | "
+                       f"{r['newton_per_lcp']:.1f} | {r['factorisations_per_lcp']:.2f} | {ended} | "
+                       f"{r['failures']} | {r['max_rel_dV']:.1e} |")
+    out += ["", f"Measured {d['measured']}, load average {', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
+    return out
+
+
 def network_control_section(d):
     ref = d["reference"]
     out = ["## Step-size control on a network (`bench_network_control.py`)", "",
@@ -501,6 +522,7 @@ def main():
                      ("tradeoff", tradeoff_section), ("spectrum", spectrum_section),
                      ("packing", packing_section), ("correlation", correlation_section),
                      ("suspension", suspension_section), ("lcp", lcp_section),
+                     ("lcp_strategies", lcp_strategies_section),
                      ("network_control_N4096", network_control_section),
                      ("network_shear", network_shear_section), ("flush", flush_section),
                      ("stiff", stiff_section), ("departure", departure_section),

@@ -107,6 +107,47 @@ def test_lcp_dense_complementarity(dense):
     assert info.min_w >= -1e-9
 
 
+@pytest.mark.parametrize("dg", [1e-2, 1e-3])
+def test_pivoting_phases_agree(dense, dg):
+    """Block pivoting, projected Newton and Lawson-Hanson (each made to finish the solve
+    from random warm sets) give the same V = S^T f (f need not be unique: N_C is
+    singular) and a complementary solution."""
+    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    S = rigidity_csr(c.n, c.i, c.j, dense.n)
+    q = c.b + c.gap / dg
+    f0, _ = co.solve_lcp(S, q, bpp_max=30, newton_max=0)
+    V0 = S.T @ f0
+    rng = np.random.default_rng(7)
+    modes = set()
+    for k in range(6):
+        warm = rng.random(len(c)) < 0.5
+        for kw in (dict(bpp_max=1, newton_max=150),      # projected Newton after one solve
+                   dict(bpp_max=1, newton_max=0),        # Lawson-Hanson after one solve
+                   {}):                                  # the default
+            f, info = co.solve_lcp(S, q, warm=warm, **kw)
+            modes.add(info.mode)
+            check_lcp(S, q, f)
+            assert np.abs(S.T @ f - V0).max() <= 1e-9 * np.abs(V0).max()
+            if kw.get("newton_max") == 0:
+                assert info.newton == 0 and info.mode != "newton"
+    assert "newton" in modes                  # the projected-Newton phase did the work
+
+
+def test_newton_phase_on_singular_sets():
+    """Duplicated contacts (N_AA exactly singular) from a random warm set: the projected
+    Newton phase meets shifted solves and still ends in a valid f."""
+    st = msu.make_suspension(32, 0.7, seed=2)
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.05)
+    S1 = rigidity_csr(c.n, c.i, c.j, st.n).toarray()
+    import scipy.sparse as sp
+    S = sp.csr_matrix(np.vstack([S1, S1[:3]]))
+    rng = np.random.default_rng(1)
+    q = -np.abs(S @ rng.standard_normal(S.shape[1])) - 0.1
+    for k in range(4):
+        f, info = co.solve_lcp(S, q, warm=rng.random(S.shape[0]) < 0.5, bpp_max=1)
+        check_lcp(S, q, f, tol=1e-7)
+
+
 def test_singular_active_set_is_handled():
     """Duplicated contacts: N_AA is exactly singular (a self-stress); no crash, a valid f."""
     st = msu.make_suspension(32, 0.7, seed=2)
