@@ -310,6 +310,48 @@ def test_summary_against_numpy(serial):
             f.close()
 
 
+SUSPENSION_SCENE = """
+title = "suspension ensemble test"
+seed = 3
+[model]
+name = "suspension"
+N = 64
+phi = 0.80
+[[protocol.leg]]
+direction = "forward"
+strain = 0.2
+[observables]
+analysis_from_strain = 0.1
+omega_min_every = 0
+[output]
+path = "unused.h5"
+"""
+
+
+@serial_only
+def test_suspension_summary_against_numpy(tmp_path):
+    """A suspension ensemble's summary: per sample the window averages of sigma, p, mu = sigma/p
+    and z (post.suspension.suspension_fits of each sample file), and their mean and error."""
+    from parflow.post.runs import load
+    from parflow.post.suspension import suspension_fits
+    res = shear(scene(tmp_path, SUSPENSION_SCENE), "--samples", 3, "--output", tmp_path / "ens",
+                "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    fits = [suspension_fits(load(sample(tmp_path / "ens", k))) for k in range(3)]
+    with h5py.File(tmp_path / "ens" / "summary.h5") as s:
+        for q, name in (("sigma", "sigma"), ("pressure", "pressure"), ("mu", "stress_ratio"),
+                        ("z", "z")):
+            v = np.array([f[q][0] for f in fits])
+            assert np.all(np.isfinite(v)) and np.ptp(v) > 0, q     # samples differ
+            g = s[f"fits/{name}.mean"]
+            assert np.array_equal(g["values"][()], v), q
+            assert np.isclose(g["mean"][()], v.mean(), rtol=1e-14)
+            assert np.isclose(g["sem"][()], v.std(ddof=1) / np.sqrt(3), rtol=1e-12)
+        mu = s["fits/stress_ratio.mean/values"][()]
+        sig, p = s["fits/sigma.mean/values"][()], s["fits/pressure.mean/values"][()]
+        assert np.all((mu > 0) & (mu < 1)) and np.allclose(mu, sig / p, rtol=0.3)
+
+
 def test_jamming_rate_poisson():
     from parflow.post.ensemble import jamming_rate
     r = jamming_rate(["jammed", "complete", "jammed", "jammed"], [0.5, 1.0, 0.25, 0.25])

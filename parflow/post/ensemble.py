@@ -38,12 +38,35 @@ from .chain import chain_fits
 from .fits import (BINS_PER_DECADE, fit_power_law, fit_window, forward_instants, forward_rows,
                    reverse_rows)
 from .network import network_fits, reverse_branch
+from .suspension import suspension_fits
 from .runs import Run, load
 
 SUMMARY_FORMAT = "parflow-ensemble-summary-1"
 DONE = ("complete", "jammed", "budget")
 GRID_POINTS = 128
-FITS = {"chain": chain_fits, "network": network_fits}
+
+
+def suspension_numbers(run) -> dict:
+    """A suspension sample's numbers for the summary: the averages of ``suspension_fits``
+    over its statistics window (sigma, pressure, the stress ratio mu = sigma/p, z, z_all,
+    z2) as {mean, err} (err: block-average error within the run), collisions per strain,
+    and the power-law fits of its analysis instants (delta_gamma, omega_min against sigma)."""
+    f = suspension_fits(run)
+    out = {}
+    for q, name in (("sigma", "sigma"), ("pressure", "pressure"), ("mu", "stress_ratio"),
+                    ("z", "z"), ("z_all", "z_all"), ("z2", "z2")):
+        if q in f:
+            out[name] = dict(mean=f[q][0], err=f[q][1])
+    for q in ("collisions_per_strain", "rows", "instants"):
+        if q in f:
+            out[q] = f[q]
+    for q in ("delta_gamma", "omega_min", "relax_frozen"):
+        if isinstance(f.get(q), dict):
+            out[q] = f[q]
+    return out
+
+
+FITS = {"chain": chain_fits, "network": network_fits, "suspension": suspension_numbers}
 FINAL_COLUMNS = ("gamma", "strain", "sigma", "V2", "step")
 
 
