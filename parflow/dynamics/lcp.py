@@ -143,9 +143,13 @@ class ActiveSolver:
             pos = np.full(self.nc, -1, np.int64)
             pos[idx] = np.arange(idx.size)
             cap = 2 * self.max_border
+            # C, Z column-major: a block of new columns is contiguous for the multi-right-
+            # hand-side solve; Z is written before it is read; the nonzeros of each column
+            # of C (a row of N, or one -1) are kept for G = C^T Z
             self.base = dict(mask=A.copy(), idx=idx, pos=pos, fac=fac, y0=y, slot={}, m=0,
-                             C=np.zeros((idx.size, cap)), Z=np.zeros((idx.size, cap)),
-                             G=np.zeros((cap, cap)), g0=np.zeros(cap))
+                             C=np.zeros((idx.size, cap), order="F"),
+                             Z=np.empty((idx.size, cap), order="F"),
+                             G=np.zeros((cap, cap)), g0=np.zeros(cap), nz=[])
             info.factor_time += time.perf_counter() - t0
             x[idx] = y
             return x
@@ -212,8 +216,16 @@ class ActiveSolver:
                 return None
             bs["Z"][:, m:m + new.size] = Zn
             m2 = m + new.size
-            # G = C0^T N00^-1 C0 is symmetric: the new columns and their mirror
-            Gn = bs["C"][:, :m2].T @ Zn
+            # G = C0^T N00^-1 C0 is symmetric: the new columns and their mirror (C0 is
+            # sparse: ~10 nonzeros a column)
+            for j in range(new.size):
+                r = np.flatnonzero(C[:, j])
+                bs["nz"].append((r, C[r, j]))
+            rows = [r for r, _ in bs["nz"]]
+            CT = sp.csr_matrix((np.concatenate([v for _, v in bs["nz"]]), np.concatenate(rows),
+                                np.concatenate([[0], np.cumsum([r.size for r in rows])])),
+                               shape=(m2, idx.size))
+            Gn = CT @ Zn
             bs["G"][:m2, m:m2] = Gn
             bs["G"][m:m2, :m2] = Gn.T
             bs["g0"][m:m2] = C.T @ bs["y0"]
