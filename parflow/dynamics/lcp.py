@@ -209,8 +209,15 @@ class ActiveSolver:
             C = bs["C"][:, m:m + new.size]
             isr = new < 0
             C[pos[-1 - new[isr]], np.flatnonzero(isr)] = -1.0
+            nz = [None] * new.size
+            for j in np.flatnonzero(isr).tolist():
+                nz[j] = (np.array([pos[-1 - new[j]]]), np.array([-1.0]))
             if np.any(~isr):
-                C[:, ~isr] = self.N[new[~isr]][:, idx].toarray().T
+                Nb = self.N[new[~isr]][:, idx].tocsr()
+                C[:, ~isr] = Nb.toarray().T
+                for r, j in enumerate(np.flatnonzero(~isr).tolist()):
+                    a, b = Nb.indptr[r], Nb.indptr[r + 1]
+                    nz[j] = (Nb.indices[a:b], Nb.data[a:b])
             Zn = bs["fac"].solve(C)
             if Zn is None:
                 return None
@@ -218,9 +225,7 @@ class ActiveSolver:
             m2 = m + new.size
             # G = C0^T N00^-1 C0 is symmetric: the new columns and their mirror (C0 is
             # sparse: ~10 nonzeros a column)
-            for j in range(new.size):
-                r = np.flatnonzero(C[:, j])
-                bs["nz"].append((r, C[r, j]))
+            bs["nz"].extend(nz)
             rows = [r for r, _ in bs["nz"]]
             CT = sp.csr_matrix((np.concatenate([v for _, v in bs["nz"]]), np.concatenate(rows),
                                 np.concatenate([[0], np.cumsum([r.size for r in rows])])),
