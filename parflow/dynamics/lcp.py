@@ -403,10 +403,7 @@ def _pivot(N, q, act: ActiveSolver, info: LCPInfo, warm, tol: float, max_iter: i
         if n_inf == 0:
             np.maximum(z, 0.0, out=z)
             info.mode = "bpp"
-            info.min_w = float(w.min())
-            info.comp = float(np.max(np.abs(z * w)))
-            info.floor = EPS * norm * float(np.max(z, initial=0.0))
-            return z, info
+            return _solved(info, z, w, norm)
         if n_inf < best:
             best, stale = n_inf, 0
         else:
@@ -466,9 +463,14 @@ def _pivot(N, q, act: ActiveSolver, info: LCPInfo, warm, tol: float, max_iter: i
     else:
         raise LCPFailure(f"contact LCP: no convergence in {max_iter} active-set iterations "
                          f"({int(A.sum())} active of {nc})")
-    w = N @ f + q
+    return _solved(info, f, N @ f + q, norm)
+
+
+def _solved(info: LCPInfo, f: np.ndarray, w: np.ndarray, norm: float):
+    """(f, info) with the solution's min w, complementarity max |f w| and round-off floor
+    eps ||N||_inf max f recorded in info."""
     info.min_w = float(w.min())
-    info.comp = float(np.max(np.abs(f * w))) if nc else 0.0
+    info.comp = float(np.max(np.abs(f * w)))
     info.floor = EPS * norm * float(np.max(f, initial=0.0))
     return f, info
 
@@ -496,10 +498,7 @@ def _projected_newton(N, q, solve, info: LCPInfo, f: np.ndarray, tol_of, norm: f
         if done and not np.any((f == 0) & (w < -t)):
             np.maximum(f, 0.0, out=f)
             info.mode = "newton"
-            info.min_w = float(w.min())
-            info.comp = float(np.max(np.abs(f * w)))
-            info.floor = EPS * norm * float(np.max(f, initial=0.0))
-            return f, info
+            return _solved(info, f, w, norm)
         # after a ratio-test step the set is first made feasible (no additions: they would
         # bring the dropped contacts straight back), as in Lawson-Hanson
         F = (f > 0) if dropped else (f > 0) | (w < -t)
