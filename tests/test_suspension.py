@@ -1,5 +1,7 @@
 """Hard-disc suspension (dynamics.hard_discs, dynamics.lcp, models.suspension): initial states, Lees-Edwards neighbour search,
 the contact LCP against an independent NNLS, no overlap, sigma identity, bad input, MPI."""
+import os
+
 import numpy as np
 import pytest
 from scipy.optimize import nnls
@@ -146,6 +148,25 @@ def test_newton_phase_on_singular_sets():
     for k in range(4):
         f, info = co.solve_lcp(S, q, warm=rng.random(S.shape[0]) < 0.5, bpp_max=1)
         check_lcp(S, q, f, tol=1e-7)
+
+
+def test_near_singular_active_set_refined():
+    """A recorded LCP (tests/reference/near_singular_lcp.npz: N = 1024, phi = 0.84, sigma =
+    3e6, 2 796 candidates) whose active N_AA is near-singular with forces ~1e10: the shifted
+    solve's error (1e-12 ||N_AA|| f ~ 0.05 on w) must be refined away against N_AA, to the
+    step's acceptance (|min w| within 64 x the round-off floor, overlap dg |w| <= 1e-12).
+    With 4 refinement steps, each required to halve the residual, min w stayed at -0.05: a
+    solver failure at every step size on an LCP the LP shows feasible."""
+    import scipy.sparse as sp
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "near_singular_lcp.npz"))
+    S = sp.csr_matrix((d["data"], d["indices"], d["indptr"]), shape=tuple(d["shape"]))
+    dg = 5.52e-9
+    q = d["b"] + d["gap"] / dg
+    f, info = co.solve_lcp(S, q, d["warm"])
+    assert info.singular >= 1 and f.max() > 1e9
+    w_tol = max(1e-8 * max(1.0, np.abs(d["b"]).max()), co.FLOOR_FACTOR * info.floor)
+    assert -info.min_w <= w_tol and dg * max(0.0, -info.min_w) <= 1e-12
+    assert info.comp <= w_tol * f.max()
 
 
 def test_singular_active_set_is_handled():
