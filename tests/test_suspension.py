@@ -251,6 +251,24 @@ def test_factor_backends_agree(dense):
         co.solve_lcp(S, q, factor="lu")
 
 
+def test_jam_proved_beyond_a_small_strain_budget():
+    """A recorded N = 1024, phi = 0.84 state (tests/reference/jam_budget_state.npz, sigma =
+    1.3e5) where every step from 1e-12 to 1e-9 fails in the solver and the LP finds no
+    compressed self-stress at the smallest step, but proves one at the largest (tau.b < 0)
+    whose gaps close after 1.8e-10 strain: shear-jammed within that budget (<= JAM_BUDGET),
+    not a solver failure; the record says at which step it was proved."""
+    import json
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "jam_budget_state.npz"))
+    ck = {k: d[k] for k in d.files if k != "controls"}
+    ck["controls"] = json.loads(str(d["controls"]))
+    sim = hd.Suspension.restore(ck)
+    with pytest.raises(hd.ShearJammed, match="strain budget") as e:
+        sim.step(1)
+    rec = e.value.certificate
+    assert rec["certified"] and rec["tau_b"] < 0
+    assert rec["dg"] > min(rec["dg_tried"]) and 0 < rec["strain_budget"] <= hd.JAM_BUDGET
+
+
 def test_shear_jammed_crystal_is_diagnosed():
     """A touching triangular crystal is over-constrained: the shear compresses its 120-degree
     bonds, the LCP has no overlap-free solution at any step size -> ShearJammed, no overlap."""
