@@ -537,30 +537,26 @@ def _projected_newton(N, q, solve, info: LCPInfo, f: np.ndarray, tol_of, norm: f
             if phin <= phi + 1e-4 * float(w @ (fn - f)) + slack:
                 break
             a *= 0.5
-            done = False
         else:
             a = 0.0
         # the projected path bends at the first force that reaches zero; when the Armijo step
         # stops short of that point (a soft mode: d huge along it), step there instead and
         # drop the blocking contacts (Lawson-Hanson's ratio test): phi decreases on the face
         # F up to z, so this too is a descent step, and the set changes
-        neg = F & (z < 0)
-        dropped = False
-        if neg.any():
-            fa, za = f[neg], z[neg]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(fa > 0, fa / (fa - za), 0.0)
-            a_rt = float(ratio.min())
-            dropped = a < a_rt
-            if dropped:
-                fn = f + a_rt * d
-                fn[np.flatnonzero(neg)[ratio <= a_rt * (1 + 1e-12)]] = 0.0
-                np.maximum(fn, 0.0, out=fn)
-                wn = N @ fn + q
-                phin = 0.5 * float(fn @ (wn + q))
-                done = False
-        if a == 0.0 and not neg.any():
-            return None                     # no descent along the path: round-off level
+        neg = F & (z < 0)                   # not empty: z < 0 somewhere on F
+        fa, za = f[neg], z[neg]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(fa > 0, fa / (fa - za), 0.0)
+        a_rt = float(ratio.min())
+        dropped = a < a_rt
+        if dropped:
+            fn = f + a_rt * d
+            fn[np.flatnonzero(neg)[ratio <= a_rt * (1 + 1e-12)]] = 0.0
+            np.maximum(fn, 0.0, out=fn)
+            wn = N @ fn + q
+            phin = 0.5 * float(fn @ (wn + q))
+        elif a == 0.0:
+            return None                     # no descent along the path nor to its bend
         _count(info, f, fn)
         f, w, phi = fn, wn, phin
     return None
