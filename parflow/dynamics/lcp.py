@@ -339,7 +339,7 @@ def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
     Phase 0: block principal pivoting from the warm set, at most ``bpp_max`` solves (0
     skips it; the default 2 -- the warm set and one exchange -- because near jamming block
     pivoting swings between sets: measured at phi = 0.84, N = 4096, letting it run (30)
-    costs 1.3-1.4x more than handing over after 2; equal at phi = 0.82, where it ends in 2).
+    costs 1.2-1.5x more than handing over after 2; equal at phi = 0.82, where it ends in 2).
 
     Phase 1 (mode "newton"): projected Newton from the warm set's solution
     (:func:`_projected_newton`; ``newton_max`` = 0 skips it).
