@@ -159,6 +159,11 @@ def suspension_section(d):
     return out
 
 
+def _measured_at(d) -> list:
+    """The closing line of a section whose JSON has ``measured`` and ``loadavg``."""
+    return ["", f"Measured {d['measured']}, load average {', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
+
+
 def lcp_section(d):
     out = ["## Contact LCP: fresh factorisations against bordered updates (`bench_lcp.py`)", "",
            f"The {d['rows'][0]['lcps']} LCPs of {d['steps']} suspension steps from `{d['file']}` (N = {d['N']}, "
@@ -174,7 +179,7 @@ def lcp_section(d):
         out.append(f"| {r['max_border']} | {r['ms_per_lcp']:.0f} | {r['solves_per_lcp']:.1f} | "
                    f"{r['factorisations_per_lcp']:.2f} | {r['bordered_per_lcp']:.1f} | {r['failures']} | "
                    f"{r['max_rel_dV']:.1e} |")
-    out += ["", f"Measured {d['measured']}, load average {', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
+    out += _measured_at(d)
     return out
 
 
@@ -195,7 +200,7 @@ def lcp_strategies_section(d):
             out.append(f"| {where} | {r['strategy']} | {r['ms_per_lcp']:.0f} | {r['solves_per_lcp']:.1f} | "
                        f"{r['newton_per_lcp']:.1f} | {r['factorisations_per_lcp']:.2f} | {ended} | "
                        f"{r['failures']} | {r['max_rel_dV']:.1e} |")
-    out += ["", f"Measured {d['measured']}, load average {', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
+    out += _measured_at(d)
     return out
 
 

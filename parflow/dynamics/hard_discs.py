@@ -288,7 +288,7 @@ class Suspension:
         below the budget are feasible in exact arithmetic, but near such a cluster the
         active-set solve cannot resolve them: measured at N = 1024, phi = 0.84, a budget of
         1.8e-10 with every step from 1e-12 to 1e-9 failing); else a solver failure."""
-        big = self._certify(c, direction, tried, max(tried))
+        big = cert if cert.dg == max(tried) else self._certify(c, direction, tried, max(tried))
         if big.certified and big.tau_b < 0 and big.strain_budget <= JAM_BUDGET:
             self._jammed(big, c, tried)
         self._failed(cert, tried, why)
