@@ -322,10 +322,23 @@ direction = "forward"
 strain = 0.2
 [observables]
 analysis_from_strain = 0.1
+analysis_strain = 0.05
 omega_min_every = 0
 [output]
 path = "unused.h5"
 """
+
+
+def _window_instants_h5(path, from_strain):
+    """The analysis instants of a sample file at strain >= from_strain, read with h5py."""
+    with h5py.File(path) as f:
+        g = f["analysis"]
+        out = []
+        for k in sorted(g):
+            a = g[k]
+            if a.attrs["strain"] >= from_strain - 1e-12:
+                out.append(dict(a.attrs) | {n: a[n][()] for n in a})
+        return out
 
 
 @serial_only
@@ -350,6 +363,28 @@ def test_suspension_summary_against_numpy(tmp_path):
         mu = s["fits/stress_ratio.mean/values"][()]
         sig, p = s["fits/sigma.mean/values"][()], s["fits/pressure.mean/values"][()]
         assert np.all((mu > 0) & (mu < 1)) and np.allclose(mu, sig / p, rtol=0.3)
+        # P(f/<f>), C(r): each sample's mean over its window's instants (C(r) on the bins all
+        # instants share), then the mean over samples; delta_gamma * sigma per sample
+        inst = [_window_instants_h5(sample(tmp_path / "ens", k), 0.1) for k in range(3)]
+        assert all(len(i) >= 2 for i in inst)
+        P = np.array([np.mean([a["force_P"] for a in i], axis=0) for i in inst])
+        edges = inst[0][0]["force_edges"]
+        g = s["curves/profile_force_P"]
+        assert np.allclose(g["x"][()], np.sqrt(edges[:-1] * edges[1:]), rtol=1e-15)
+        assert np.allclose(g["values"][()], P, rtol=1e-13, equal_nan=True)
+        assert np.allclose(g["mean"][()], np.mean(P, axis=0), rtol=1e-12, equal_nan=True)
+        assert np.allclose(g["sem"][()], np.std(P, axis=0, ddof=1) / np.sqrt(3), rtol=1e-10,
+                           equal_nan=True)
+        # each sample's P(f/<f>) is a density of f/<f>: it integrates to one over the bins
+        assert np.allclose(np.sum(P * np.diff(edges), axis=1), 1.0, rtol=1e-12)
+        m = min(a["corr_r"].size for i in inst for a in i)
+        C = np.array([np.mean([a["corr_C"][:m] for a in i], axis=0) for i in inst])
+        g = s["curves/profile_corr_C"]
+        assert np.array_equal(g["x"][()], inst[0][0]["corr_r"][:m])
+        assert np.allclose(g["values"][()], C, rtol=1e-13, equal_nan=True)
+        dgs = np.array([np.mean([a["delta_gamma"] * a["frozen_sigma"] for a in i]) for i in inst])
+        assert np.all(np.isfinite(dgs)) and np.all(dgs > 0)
+        assert np.allclose(s["fits/delta_gamma_sigma.mean/values"][()], dgs, rtol=1e-13)
 
 
 def test_jamming_rate_poisson():

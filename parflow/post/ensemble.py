@@ -19,7 +19,9 @@ standard deviation, ddof = 1; NaN for n < 2) and the count n.
   ``post.network.reverse_branch``) against sigma on a network's first reversed leg (log grid);
   ``profile_NAME``: the model's profiles (:data:`PROFILES`: the chain's C(n) and point
   response, the network's C(r) and point responses V(r), f(r)) at each sample's last analysis
-  instant on its first forward leg, on a linear grid.
+  instant on its first forward leg, on a linear grid; a suspension's P(f/<f>), C(r) and
+  point responses (:data:`SUSPENSION_PROFILES`) as each sample's mean over the analysis
+  instants of its statistics window (steady flow: every instant there is a sample of it).
 * ``ensemble_fits/NAME``: numbers fitted to the averaged curves, with jackknife errors
   (leave one sample out, refit: err^2 = (n - 1)/n sum_i (f_i - mean f_i)^2): the chain's
   <V^2> exponent against gamma_c - gamma; ``jamming_rate``, shear jams per unit strain with
@@ -38,7 +40,7 @@ from .chain import chain_fits
 from .fits import (BINS_PER_DECADE, fit_power_law, fit_window, forward_instants, forward_rows,
                    reverse_rows)
 from .network import network_fits, reverse_branch
-from .suspension import suspension_fits
+from .suspension import suspension_fits, window_instants
 from .runs import Run, load
 
 SUMMARY_FORMAT = "parflow-ensemble-summary-1"
@@ -63,7 +65,26 @@ def suspension_numbers(run) -> dict:
     for q in ("delta_gamma", "omega_min", "relax_frozen"):
         if isinstance(f.get(q), dict):
             out[q] = f[q]
+    for q in ("resp_l_c", "corr_length"):          # medians over the window's instants
+        if q in f:
+            out[q] = dict(median=f[q][0], err=f[q][1])
+    dgs = delta_gamma_sigma(run)
+    if dgs is not None:
+        out["delta_gamma_sigma"] = dgs
     return out
+
+
+def delta_gamma_sigma(run) -> dict | None:
+    """delta_gamma * sigma of the frozen contact network (constant if delta_gamma ~ 1/sigma,
+    the paper's Fig. 7) over the analysis instants of the statistics window: mean, its error
+    s / sqrt(n) over the instants, and n.  None without such instants."""
+    v = np.array([float(a.get("delta_gamma", np.nan)) * float(a.get("frozen_sigma", np.nan))
+                  for a in window_instants(run)], float)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return None
+    err = float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else math.nan
+    return dict(mean=float(v.mean()), err=err, n=int(v.size))
 
 
 FITS = {"chain": chain_fits, "network": network_fits, "suspension": suspension_numbers}
@@ -273,6 +294,70 @@ def _profile_curves(runs, model) -> dict:
     return out
 
 
+# a suspension's profiles (array, abscissa, label, axis scales): in steady flow each sample's
+# profile is the mean over the analysis instants of its statistics window; P(f/<f>) is on
+# log bins (abscissa: the bins' geometric centres)
+SUSPENSION_PROFILES = (("force_P", "force_edges", "P(f/<f>)", "log"),
+                       ("corr_C", "corr_r", "C(r)", "linear"),
+                       ("resp_V", "resp_r", "point response V(r)", "linear"),
+                       ("resp_f", "resp_r", "point response f(r)", "linear"))
+
+
+def _shared_prefix(xs) -> int | None:
+    """The length of the abscissae's common part when each is the start of the longest (the
+    same bins cut at different ranges: C(r) and the point response stop at the sheared
+    cell's inscribed radius, which changes with the strain), else None."""
+    longest = max(xs, key=len)
+    if all(np.array_equal(x, longest[:x.size]) for x in xs):
+        return min(x.size for x in xs)
+    return None
+
+
+def _window_mean_profile(run, name: str, xname: str):
+    """(x, y): the mean of profile ``name`` over the statistics window's instants (NaN bins
+    ignored) on the bins they share, or (None, None) without such instants."""
+    inst = [a for a in window_instants(run) if name in a and xname in a]
+    xs = [np.asarray(a[xname], float) for a in inst]
+    m = _shared_prefix(xs) if xs else None
+    if not m:
+        return None, None
+    if xname == "force_edges":                    # bin edges -> geometric centres
+        ys = np.array([np.asarray(a[name], float)[:m - 1] for a in inst])
+        x = np.sqrt(xs[0][:m - 1] * xs[0][1:m])
+    else:
+        ys = np.array([np.asarray(a[name], float)[:m] for a in inst])
+        x = xs[0][:m]
+    count = np.sum(np.isfinite(ys), axis=0)
+    y = np.full(x.size, np.nan)
+    y[count > 0] = np.nansum(ys, axis=0)[count > 0] / count[count > 0]
+    return x, y
+
+
+def suspension_profiles(runs) -> dict:
+    """P(f/<f>), C(r) and the point responses, each sample's window mean (rows of
+    ``values``) on a common grid: the bins the samples share when their abscissae agree
+    (the same scene), else a linear (P(f): logarithmic) grid over their ranges."""
+    out = {}
+    for name, xname, label, scale in SUSPENSION_PROFILES:
+        xs, ys = zip(*[_window_mean_profile(r, name, xname) for r in runs]) if runs else ((), ())
+        have = [x for x in xs if x is not None and x.size >= 2]
+        if not have:
+            continue
+        m = _shared_prefix(have) if len(have) == len(xs) else None
+        if m:
+            grid, vals = have[0][:m], np.array([y[:m] for y in ys])
+        else:
+            lo, hi = min(float(x.min()) for x in have), max(float(x.max()) for x in have)
+            npts = max(min(GRID_POINTS, max(x.size for x in have)), 2)
+            grid = np.geomspace(lo, hi, npts) if scale == "log" else np.linspace(lo, hi, npts)
+            vals = np.array([on_grid(x, y, grid) if x is not None else np.full(grid.size, np.nan)
+                             for x, y in zip(xs, ys)])
+        out[f"profile_{name}"] = dict(x=grid, values=vals, ylabel=label,
+                                      xlabel="f/<f>" if xname == "force_edges" else "r",
+                                      xscale=scale, yscale=scale)
+    return out
+
+
 def _chain_ensemble_fit(curve, runs) -> dict:
     """The <V^2> exponent fitted to the averaged forward curve (window: the last decades
     of gamma_c - gamma above 10 typical |dgamma|, as for one run), jackknife error."""
@@ -346,6 +431,8 @@ def summarise(folder: str) -> dict:
         if model == "network":
             curves.update(network_curves(rs))
         curves.update(_profile_curves(rs, model))
+        if model == "suspension":
+            curves.update(suspension_profiles(rs))
     ens = {}
     if "V2_forward" in curves:
         ens.update(_chain_ensemble_fit(curves["V2_forward"], rs))
