@@ -99,3 +99,26 @@ def test_max_stages_bounds_the_stage_count():
     assert load_scene(scene)["integrator"]["max_stages"] == 5
     with pytest.raises(InputError, match="max_stages"):
         load_scene(scene.replace("max_stages = 5", "max_stages = 1"))
+
+
+@pytest.mark.serial_only          # five runs of a 1000-rod chain, ~5 s
+def test_rkc_error_and_step_count_follow_its_order(mpi_tmp_path):
+    """Against a tight reference (RKC2 at tol 1e-5, its error ~100x below the runs'): the
+    error of <V^2> falls like tol (the controller holds the local error per unit of
+    displacement at tol), and the steps grow like tol^(-1/2) -- a second-order method (first
+    order would need tol^-1).  Measured: exponents 1.08 and 0.48 over tol = 8e-3 ... 1e-3."""
+    ref, _ = _run(str(mpi_tmp_path / "ref.h5"), "rkc", 1e-5)
+    tols = np.array([0.008, 0.004, 0.002, 0.001])
+    errs, steps = [], []
+    for tol in tols:
+        r, _ = _run(str(mpi_tmp_path / f"rkc_{tol}.h5"), "rkc", tol)
+        ok = (r["gamma"] > ref["gamma"][1]) & (r["gamma"] < ref["gamma"][-2])
+        errs.append(np.max(np.abs(np.log(r["V2"][ok]) - np.interp(r["gamma"][ok], ref["gamma"],
+                                                                    np.log(ref["V2"])))))
+        steps.append(r["step"][-1] + r["rejected"].sum())
+    p_err = np.polyfit(np.log(tols), np.log(errs), 1)[0]
+    p_steps = -np.polyfit(np.log(tols), np.log(steps), 1)[0]
+    print(f"errors {np.array(errs)}, steps {steps}: error ~ tol^{p_err:.2f}, steps ~ tol^-{p_steps:.2f}")
+    assert 0.8 <= p_err <= 1.3
+    assert 0.35 <= p_steps <= 0.65
+    assert errs[-1] < 1e-3
