@@ -462,14 +462,14 @@ def stiff_section(d):
 
 def ensemble_section(d):
     one, two, par, cm = d["one_sample"], d["serial_two"], d["two_ranks_two"], d["cpu_model"]
-    load = ", ".join(f"{x:.1f}" for x in d["machine"]["load_before"])
+    loadavg = ", ".join(f"{x:.1f}" for x in d["machine"]["load_before"])
     idle = d["machine"]["load_before"][0] < 0.5
     tgt, wtgt = d["target"]["throughput_ratio_at_least"], d["target"]["wall_ratio_at_most"]
     q = d.get("queue")
     out = ["## Ensembles (`bench_ensemble.py`)", "",
            f"A chain (N = {d['scene']['N']:,}, forward to ⟨V²⟩ = {d['scene']['V2_above']:g}) as one "
            "sample alone, two samples one after the other, and two samples side by side on 2 ranks "
-           f"(docs/ensembles.md); measured {d['date']}, load average before: {load} "
+           f"(docs/ensembles.md); measured {d['date']}, load average before: {loadavg} "
            f"({'an otherwise idle machine' if idle else 'other jobs shared the cores'}).", "",
            "| job | wall (s) | CPU (s) |", "|---|---|---|",
            f"| one sample alone | {one['job_seconds']:.1f} | {one['cpu_seconds']:.1f} |",
@@ -496,6 +496,21 @@ def ensemble_section(d):
                 f"{'equal' if q['same_steps_on_two_ranks'] else 'NOT equal'} to one by one."]
     out += [f"Overhead per sample: {d['overhead_per_sample_seconds']:.1f} s of wall time (start-up), "
             f"{cm['fixed_cpu_seconds']:.2f} s of CPU.", ""]
+    e = load("ensemble_equal_work")
+    if e is not None:
+        et, ew = e["throughput_ratio"], e["wall_ratio_vs_longest_sample"]
+        out += [f"**Equal work** (`--max-steps {e['scene']['max_steps']}`: every sample stops after "
+                f"{e['scene']['max_steps']} steps, whatever its seed; measured {e['date']}"
+                + (f", {e['machine']['note']}" if e["machine"].get("note") else
+                   f", load before {e['machine']['load_before'][0]:.1f}")
+                + f"): one sample alone "
+                f"{e['one_sample']['job_seconds']:.1f} s, two one by one "
+                f"{e['serial_two']['job_seconds']:.1f} s, two on 2 ranks "
+                f"{e['two_ranks_two']['job_seconds']:.1f} s: throughput {et:.2f}x (target ≥ {tgt}x: "
+                f"{'met' if et >= tgt else 'not met'}), wall time {ew:.3f}x one sample alone "
+                f"(≤ {wtgt}x: {'met' if ew <= wtgt else 'not met'}); overhead per sample "
+                f"{e['overhead_per_sample_seconds']:.2f} s, the ensemble machinery's own "
+                f"{e['ensemble_machinery_seconds']:+.2f} s.", ""]
     return out
 
 
