@@ -31,6 +31,7 @@ import petsc4py
 
 petsc4py.init(sys.argv[:1])
 import numpy as np  # noqa: E402
+from mpi4py import MPI  # noqa: E402
 from petsc4py import PETSc  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
@@ -104,8 +105,9 @@ def main():
     perf = {}
     for name in EVENTS:
         info = PETSc.Log.Event(name).getPerfInfo(stage.id)
-        perf[name] = {k: mpi.allreduce(float(info.get(k, 0.0))) if k in ("numMessages", "messageLength")
-                      else mpi.allreduce(float(info.get(k, 0.0)), op=_max())
+        # messages and bytes summed over the ranks, counts, times and reductions their maximum
+        perf[name] = {k: mpi.allreduce(float(info.get(k, 0.0)),
+                                       op=MPI.SUM if k in ("numMessages", "messageLength") else MPI.MAX)
                       for k in ("count", "time", "flops", "numMessages", "messageLength", "numReductions")}
     nnz, gh = ghosts(sysm.ops)
     per_rank = mpi.gather(dict(rows=int(sysm.ops.hi - sysm.ops.lo), nnz=nnz, ghosts=gh,
@@ -144,11 +146,6 @@ def main():
               f"{row['reductions_per_iteration']:.2f} reductions per iteration, ghosts "
               f"{[r['ghosts'] for r in per_rank]}", flush=True)
     sysm.destroy()
-
-
-def _max():
-    from mpi4py import MPI
-    return MPI.MAX
 
 
 if __name__ == "__main__":

@@ -68,18 +68,18 @@ def suspension_numbers(run) -> dict:
     for q in ("resp_l_c", "corr_length"):          # medians over the window's instants
         if q in f:
             out[q] = dict(median=f[q][0], err=f[q][1])
-    dgs = delta_gamma_sigma(run)
+    dgs = delta_gamma_sigma(*f["delta_gamma_points"]) if "delta_gamma_points" in f else None
     if dgs is not None:
         out["delta_gamma_sigma"] = dgs
     return out
 
 
-def delta_gamma_sigma(run) -> dict | None:
+def delta_gamma_sigma(sigma, delta_gamma) -> dict | None:
     """delta_gamma * sigma of the frozen contact network (constant if delta_gamma ~ 1/sigma,
-    the paper's Fig. 7) over the analysis instants of the statistics window: mean, its error
-    s / sqrt(n) over the instants, and n.  None without such instants."""
-    v = np.array([float(a.get("delta_gamma", np.nan)) * float(a.get("frozen_sigma", np.nan))
-                  for a in window_instants(run)], float)
+    the paper's Fig. 7) over the analysis instants of the statistics window (the
+    ``delta_gamma_points`` of ``suspension_fits``): mean, its error s / sqrt(n) over the
+    instants, and n.  None without such instants."""
+    v = np.asarray(delta_gamma, float) * np.asarray(sigma, float)
     v = v[np.isfinite(v)]
     if not v.size:
         return None
@@ -267,6 +267,18 @@ PROFILES = {
 }
 
 
+def _profiles_on_grid(xs, ys, have, scale: str = "linear"):
+    """(grid, rows): the profiles (x, y) of the samples (None: a sample without one) on a
+    grid over the ranges of ``have`` (their abscissae of >= 2 points), linear or logarithmic,
+    with as many points as the longest (at most GRID_POINTS)."""
+    lo, hi = min(float(x.min()) for x in have), max(float(x.max()) for x in have)
+    npts = max(min(GRID_POINTS, max(x.size for x in have)), 2)
+    grid = np.geomspace(lo, hi, npts) if scale == "log" else np.linspace(lo, hi, npts)
+    vals = np.array([on_grid(x, y, grid) if x is not None else np.full(grid.size, np.nan)
+                     for x, y in zip(xs, ys)])
+    return grid, vals
+
+
 def _profile_curves(runs, model) -> dict:
     """The model's profiles (C(r), the point response) at each sample's last analysis
     instant on its first forward leg (the one nearest jamming), on a common linear grid."""
@@ -284,10 +296,7 @@ def _profile_curves(runs, model) -> dict:
         have = [x for x in xs if x is not None and x.size >= 2]
         if not have:
             continue
-        grid = np.linspace(min(float(x.min()) for x in have), max(float(x.max()) for x in have),
-                           max(min(GRID_POINTS, max(x.size for x in have)), 2))
-        vals = np.array([on_grid(x, y, grid) if x is not None else np.full(grid.size, np.nan)
-                         for x, y in zip(xs, ys)])
+        grid, vals = _profiles_on_grid(xs, ys, have)
         out[f"profile_{name}"] = dict(x=grid, values=vals, ylabel=label,
                                       xlabel="n (rods)" if xname is None else "r",
                                       xscale="linear", yscale="linear")
@@ -347,11 +356,7 @@ def suspension_profiles(runs) -> dict:
         if m:
             grid, vals = have[0][:m], np.array([y[:m] for y in ys])
         else:
-            lo, hi = min(float(x.min()) for x in have), max(float(x.max()) for x in have)
-            npts = max(min(GRID_POINTS, max(x.size for x in have)), 2)
-            grid = np.geomspace(lo, hi, npts) if scale == "log" else np.linspace(lo, hi, npts)
-            vals = np.array([on_grid(x, y, grid) if x is not None else np.full(grid.size, np.nan)
-                             for x, y in zip(xs, ys)])
+            grid, vals = _profiles_on_grid(xs, ys, have, scale)
         out[f"profile_{name}"] = dict(x=grid, values=vals, ylabel=label,
                                       xlabel="f/<f>" if xname == "force_edges" else "r",
                                       xscale=scale, yscale=scale)
