@@ -94,9 +94,16 @@ def folder_of(output_path: str) -> str:
 _SEED_LINE = re.compile(r"^[ \t]*seed[ \t]*=[^\n]*$")
 
 
-def sample_text(text: str, seed: int, source: str = "<scene>") -> str:
+SAMPLE_FIELD = "{sample}"
+
+
+def sample_text(text: str, seed: int, source: str = "<scene>", sample: int | None = None) -> str:
     """The scene text with its top-level ``seed`` set to ``seed`` (the line replaced, or one
-    added at the top); checked to parse to the same scene apart from the seed."""
+    added at the top); checked to parse to the same scene apart from the seed.  With
+    ``sample``, every ``{sample}`` in the text (meant for ``model.configuration_file``: one
+    prepared state per sample) is first replaced by the index as 4 digits (0007)."""
+    if sample is not None:
+        text = text.replace(SAMPLE_FIELD, f"{sample:04d}")
     lines = text.splitlines(keepends=True)
     end = next((i for i, ln in enumerate(lines) if ln.lstrip().startswith("[")), len(lines))
     hits = [i for i in range(end) if _SEED_LINE.match(lines[i].rstrip("\r\n"))]
@@ -250,6 +257,7 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
                     os.remove(os.path.join(d, name))
         check_output_path(index, True)
         plan = ["new"] * samples
+    _check_sample_files(scene, samples, plan)
     claims = _claims_dir(folder)
     os.makedirs(claims, exist_ok=True)
     for name in os.listdir(claims):            # claims of an earlier job
@@ -266,6 +274,21 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
         attrs["created"] = read_index(folder)["attrs"].get("created", attrs["created"])
     _write_index(folder, attrs, samples, read_records(folder) if restart else {}, plan)
     return plan
+
+
+def _check_sample_files(scene: dict, samples: int, plan: list) -> None:
+    """A ``model.configuration_file`` with ``{sample}`` must name an existing file for every
+    sample that starts afresh (checked before any sample runs, not one failure per sample)."""
+    path = str(scene["model"].get("configuration_file", "") or "")
+    if SAMPLE_FIELD not in path:
+        return
+    missing = [path.replace(SAMPLE_FIELD, f"{k:04d}") for k in range(samples)
+               if plan[k] == "new" and not os.path.isfile(path.replace(SAMPLE_FIELD, f"{k:04d}"))]
+    if missing:
+        raise InputError(f"model.configuration_file {path!r}: {len(missing)} of {samples} "
+                         f"samples have no file (first: {missing[0]!r}); prepare one per sample "
+                         f"(python -m parflow.prepare compress ENSEMBLE_FOLDER --out "
+                         f"'...{SAMPLE_FIELD}.npz') or run fewer samples")
 
 
 def _claim(folder: str, k: int) -> bool:
@@ -303,8 +326,8 @@ def run_sample(group, folder: str, k: int, mode: str, base: dict, cmdline, max_s
         text, before = collective(group, _restart_scene_of, path)
         scene = apply_settings(load_scene(text, path), before)
     else:
-        scene = apply_settings(load_scene(sample_text(base["text"], seed), base["source"]),
-                               base["settings"])
+        scene = apply_settings(load_scene(sample_text(base["text"], seed, base["source"], k),
+                                          base["source"]), base["settings"])
         scene["output"]["path"] = path
         collective(group, check_output_path, path, True)
     t0, c0 = time.monotonic(), time.process_time()

@@ -1,6 +1,7 @@
 """Prepare a suspension configuration from a saved run: compress a flowing state.
 
     python -m parflow.prepare compress RUN.h5 --phi 0.840 --out out/conf.npz [--from checkpoint]
+    python -m parflow.prepare compress ENSEMBLE_FOLDER --phi 0.840 --out 'out/conf_{sample}.npz'
 
 A hard-disc state taken from a run (its checkpoint, or its initial state) is compressed to a
 higher packing fraction at fixed radii: the box and the positions are scaled affinely, and
@@ -14,6 +15,12 @@ with what it was made from (source file, step, strain, phi_0, FIRE iterations, s
 The state must sit at a strain where the Lees-Edwards cell is a rectangle again
 (gamma * Ly / Lx an integer: the end of a leg of integer strain, e.g. the 3.0 + 1.0 of the
 Fig. 6 scenes), since the minimiser works in a rectangular periodic box.
+
+An ensemble's output folder compresses every sample file in it, into one .npz per sample
+(``{sample}`` in --out: the 4-digit index); an ensemble scene whose
+``model.configuration_file`` holds ``{sample}`` then starts sample k from file k
+(``parflow.ensemble``; docs/ensembles.md).  The files are written one by one (each whole, by a
+rename): on an error the ones before it stay, and ``--overwrite`` redoes them.
 """
 from __future__ import annotations
 
@@ -91,15 +98,62 @@ def load_run_state(path: str, which: str = "checkpoint"):
         return ck["s"], h0, float(ck["gamma"]), radii, int(ck["step"])
 
 
+SAMPLE_FIELD = "{sample}"
+
+
+def ensemble_runs(folder: str) -> list[tuple[int, str]]:
+    """(index, path) of the sample files of an ensemble folder (``FOLDER/ensemble.h5``)."""
+    if not os.path.isfile(os.path.join(folder, "ensemble.h5")):
+        raise InputError(f"prepare: {folder!r} is a directory but not an ensemble folder (no "
+                         f"ensemble.h5): give a run file or an ensemble's output folder")
+    out = sorted((int(n[7:11]), os.path.join(folder, n)) for n in os.listdir(folder)
+                 if len(n) == 14 and n.startswith("sample_") and n.endswith(".h5")
+                 and n[7:11].isdigit())
+    if not out:
+        raise InputError(f"prepare: the ensemble folder {folder!r} holds no sample file")
+    return out
+
+
+def _compress_one(run: str, phi: float, out: str, overwrite: bool, which: str) -> str:
+    """Compress the state of one run file into ``out`` (.npz, written whole by a rename);
+    the line that reports it.  InputError for bad input, OSError if it cannot be written."""
+    s, h0, gamma, radii, step = load_run_state(run, which)
+    if os.path.exists(out) and os.path.exists(run) and os.path.samefile(run, out):
+        raise InputError(f"prepare: --out {out!r} is the run file itself")
+    check_output_path(out, overwrite, "--out")
+    X = rectangular_positions(s, h0, gamma)
+    box = np.array([h0[0, 0], h0[1, 1]])
+    pos, box1, info = compress(X, radii, box, phi)
+    state = su.from_configuration(pos, radii, box1, 0.0)    # checks: no overlap, phi < phi_J
+    gap = su.min_gap(state)
+    tmp = out[:-4] + ".part.npz"
+    try:
+        np.savez(tmp, positions=pos, radii=radii, box=box1, gamma=0.0, source=os.path.abspath(run),
+                 source_state=which, source_step=step, source_gamma=gamma, phi0=info["phi0"],
+                 phi=state.meta["phi"], fire_iterations=info["fire_iterations"],
+                 rms_move=info["rms_move"], min_gap=gap)
+        os.replace(tmp, out)
+    except OSError:                     # checked above; the disk can still fill up
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return (f"{out}: N = {len(radii)}, phi {info['phi0']:.6g} -> {state.meta['phi']:.6g} "
+            f"(from the {which} of {run}, step {step}, gamma = {gamma:.6g}); "
+            f"{info['fire_iterations']} FIRE iterations, rms move {info['rms_move']:.3g} a0, "
+            f"smallest gap {gap:.3g} a0")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m parflow.prepare", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("compress", help="compress a run's state to a higher packing fraction")
-    c.add_argument("run", help="a suspension run file (HDF5, from python -m parflow.shear)")
+    c.add_argument("run", help="a suspension run file (HDF5, from python -m parflow.shear), or "
+                   "an ensemble's output folder (every sample file in it)")
     c.add_argument("--phi", type=float, required=True, help="target packing fraction")
     c.add_argument("--out", required=True, help="output .npz (a scene's model.configuration_file); "
-                   "missing folders are created")
+                   "missing folders are created; for an ensemble folder it must hold {sample}, "
+                   "replaced by each sample's 4-digit index")
     c.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     c.add_argument("--from", dest="which", choices=("checkpoint", "initial"), default="checkpoint",
                    help="the run's state to start from (default: its checkpoint, the last state)")
@@ -109,35 +163,26 @@ def main(argv=None) -> int:
             raise InputError(f"prepare: --out must be a file name ending in .npz, got {a.out!r}")
         if not np.isfinite(a.phi):
             raise InputError(f"prepare: --phi must be a finite number, got {a.phi}")
-        s, h0, gamma, radii, step = load_run_state(a.run, a.which)
-        if os.path.exists(a.out) and os.path.exists(a.run) and os.path.samefile(a.run, a.out):
-            raise InputError(f"prepare: --out {a.out!r} is the run file itself")
-        check_output_path(a.out, a.overwrite, "--out")
-        X = rectangular_positions(s, h0, gamma)
-        box = np.array([h0[0, 0], h0[1, 1]])
-        pos, box1, info = compress(X, radii, box, a.phi)
-        state = su.from_configuration(pos, radii, box1, 0.0)    # checks: no overlap, phi < phi_J
+        if os.path.isdir(a.run):
+            if SAMPLE_FIELD not in a.out:
+                raise InputError(f"prepare: {a.run!r} is an ensemble folder: --out must hold "
+                                 f"{SAMPLE_FIELD} (one file per sample), got {a.out!r}")
+            jobs = [(path, a.out.replace(SAMPLE_FIELD, f"{k:04d}"))
+                    for k, path in ensemble_runs(a.run)]
+        elif SAMPLE_FIELD in a.out:
+            raise InputError(f"prepare: --out {a.out!r} holds {SAMPLE_FIELD}, which is for an "
+                             f"ensemble folder; {a.run!r} is not one")
+        else:
+            jobs = [(a.run, a.out)]
+        for run, out in jobs:
+            print(_compress_one(run, a.phi, out, a.overwrite, a.which), flush=True)
     except InputError as exc:
         print(f"parflow.prepare: error: {exc}", file=sys.stderr)
         return 2
-    gap = su.min_gap(state)
-    tmp = a.out[:-4] + ".part.npz"
-    try:
-        np.savez(tmp, positions=pos, radii=radii, box=box1, gamma=0.0, source=os.path.abspath(a.run),
-                 source_state=a.which, source_step=step, source_gamma=gamma, phi0=info["phi0"],
-                 phi=state.meta["phi"], fire_iterations=info["fire_iterations"],
-                 rms_move=info["rms_move"], min_gap=gap)
-        os.replace(tmp, a.out)
-    except OSError as exc:              # checked above; the disk can still fill up
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        print(f"parflow.prepare: error: cannot write {a.out!r}: "
+    except OSError as exc:
+        print(f"parflow.prepare: error: cannot write {getattr(exc, 'filename', None) or a.out!r}: "
               f"{exc.strerror or exc}", file=sys.stderr)
         return 1
-    print(f"{a.out}: N = {len(radii)}, phi {info['phi0']:.6g} -> {state.meta['phi']:.6g} "
-          f"(from the {a.which} of {a.run}, step {step}, gamma = {gamma:.6g}); "
-          f"{info['fire_iterations']} FIRE iterations, rms move {info['rms_move']:.3g} a0, "
-          f"smallest gap {gap:.3g} a0")
     return 0
 
 

@@ -67,3 +67,70 @@ def test_cli_from_a_run_file(tmp_path):
     assert st.n == 96 and st.meta["phi"] == pytest.approx(0.78)
     res = cli(tmp_path / "missing.h5", "--phi", 0.78, "--out", out)
     assert res.returncode == 2 and "does not exist" in res.stderr
+
+
+ENSEMBLE_SCENE = """seed = 4
+[model]
+name = "suspension"
+N = 96
+phi = {phi}
+{config}
+[ensemble]
+samples = {samples}
+[[protocol.leg]]
+direction = "forward"
+strain = {strain}
+[output]
+path = "unused.h5"
+"""
+
+
+def test_ensemble_folder_compressed_into_one_start_per_sample(tmp_path):
+    """An ensemble's samples (1.0 strain: a rectangle again) compressed to phi = 0.78 into one
+    .npz per sample; an ensemble scene with {sample} in configuration_file starts sample k
+    from file k; too few files, or {sample} outside an ensemble, fail with one line (exit 2)."""
+    import h5py
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+    def run(*args, module="parflow.shear"):
+        return subprocess.run([sys.executable, "-m", module, *map(str, args)],
+                              capture_output=True, text=True, env=env, timeout=300)
+    (tmp_path / "a.toml").write_text(ENSEMBLE_SCENE.format(phi=0.76, config="", samples=2,
+                                                           strain=1.0))
+    res = run(tmp_path / "a.toml", "--output", tmp_path / "ens", "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    out = tmp_path / "conf" / "c_{sample}.npz"
+    res = run("compress", tmp_path / "ens", "--phi", 0.78, "--out", tmp_path / "conf" / "c.npz",
+              module="parflow.prepare")
+    assert res.returncode == 2 and "{sample}" in res.stderr and len(res.stderr.splitlines()) == 1
+    res = run("compress", tmp_path / "ens", "--phi", 0.78, "--out", out, module="parflow.prepare")
+    assert res.returncode == 0, res.stderr
+    assert sorted(os.listdir(tmp_path / "conf")) == ["c_0000.npz", "c_0001.npz"]
+    with np.load(tmp_path / "conf" / "c_0001.npz") as z:
+        assert str(z["source"]).endswith("sample_0001.h5") and float(z["phi"]) == pytest.approx(0.78)
+        pos1 = z["positions"]
+    config = f'configuration_file = "{out}"'
+    (tmp_path / "b.toml").write_text(ENSEMBLE_SCENE.format(phi=0.78, config=config, samples=2,
+                                                           strain=0.01))
+    res = run(tmp_path / "b.toml", "--output", tmp_path / "ens2", "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    from parflow.io import RunFile
+    with RunFile(str(tmp_path / "ens2" / "sample_0001.h5")) as rf:
+        init = rf.initial()
+        assert 'c_0001.npz' in rf.scene_text and "{sample}" not in rf.scene_text
+    r = init["s"] @ init["h0"].T
+    box = np.diag(init["h0"])
+    assert np.allclose(r - np.floor(r / box) * box, pos1, atol=1e-12)
+    with h5py.File(tmp_path / "ens2" / "sample_0000.h5") as f:
+        assert f.attrs["status"] == "complete"
+    # three samples, two files: refused before any sample runs
+    (tmp_path / "c.toml").write_text(ENSEMBLE_SCENE.format(phi=0.78, config=config, samples=3,
+                                                           strain=0.01))
+    res = run(tmp_path / "c.toml", "--output", tmp_path / "ens3", "--quiet", "--no-plots")
+    assert res.returncode == 2 and "1 of 3 samples have no file" in res.stderr
+    assert not (tmp_path / "ens3" / "sample_0000.h5").exists()
+    # {sample} in a single run
+    (tmp_path / "d.toml").write_text(ENSEMBLE_SCENE.format(phi=0.78, config=config, samples=3,
+                                                           strain=0.01).replace("[ensemble]\nsamples = 3\n", ""))
+    res = run(tmp_path / "d.toml", "--output", tmp_path / "one.h5", "--quiet", "--no-plots")
+    assert res.returncode == 2 and "only an ensemble fills in" in res.stderr

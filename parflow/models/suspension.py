@@ -196,6 +196,10 @@ def load_configuration(path: str, p: dict) -> State:
     """A user configuration (.npz: positions, radii, box[, gamma]); refused if it does not
     match the scene (N, phi to 1e-6) or if discs overlap (``from_configuration``)."""
     if not os.path.isfile(path):
+        if "{sample}" in path:
+            raise InputError(f"model.configuration_file {path!r} holds {{sample}}, which only an "
+                             f"ensemble fills in (one file per sample): run it with --samples K "
+                             f"or name one file")
         raise InputError(f"model.configuration_file {path!r} does not exist")
     try:
         with np.load(path) as z:

@@ -1,0 +1,172 @@
+"""Figures of suspension ensembles across phi (docs/suspensions.md "Ensembles across phi"),
+from ``parflow.post.suspension_across_ensembles`` (Figs. 6e and 7b with error bars):
+
+* ``suspension_ensembles_across``: sigma and p against phi with the divergence fits (phi_c
+  free, and fixed at phi_J); sigma and p against dz = 4 - z2 (predicted slope -2.7); mu
+  against phi (~0.1 near jamming); l_c against p (0.18) and against dz (-1/2, with the
+  C(r) length); C2 = median omega_min sqrt(sigma) against dz (1/2); delta_gamma * sigma
+  against sigma (flat); the per-sample exponent of omega_min(sigma) against phi (-1/2).
+  Every point is the ensemble mean with its standard error; grey dots are the samples.
+
+``python -m parflow.plot.suspension_ensembles FOLDER... [--out DIR]`` (FOLDER as for
+``python -m parflow.post.suspension_across_ensembles``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ..post.suspension_across_ensembles import PHI_J, analyse, format_table
+from .base import new_figure, reference
+
+
+def _points(ax, rows, x, y, color, label, xkey_is_phi=False):
+    """Means with standard errors (both axes where x is a measured quantity), samples grey."""
+    xs = np.array([t["phi"] if xkey_is_phi else t[x]["mean"] for t in rows], float)
+    xe = None if xkey_is_phi else np.array([t[x]["sem"] for t in rows], float)
+    ym = np.array([t[y]["mean"] for t in rows], float)
+    ye = np.array([t[y]["sem"] for t in rows], float)
+    for k, t in enumerate(rows):
+        v = np.asarray(t[y]["values"], float)
+        xv = (np.full(v.size, xs[k]) if xkey_is_phi else np.asarray(t[x]["values"], float))
+        ax.plot(xv, v, ".", color="0.65", ms=3, zorder=1)
+    ok = np.isfinite(xs) & np.isfinite(ym)
+    ax.errorbar(xs[ok], ym[ok], yerr=np.nan_to_num(ye[ok]),
+                xerr=None if xe is None else np.nan_to_num(xe[ok]), fmt="o", color=color,
+                ms=4.5, capsize=2.5, zorder=3, label=label)
+    return xs[ok], ym[ok]
+
+
+def _power(ax, fit, xs, color, label):
+    if not np.isfinite(fit["exponent"]) or xs.size < 2:
+        return
+    xl = np.geomspace(xs.min() / 1.1, xs.max() * 1.1, 30)
+    boot = f", boot. ± {fit['boot_err']:.2f}" if np.isfinite(fit["boot_err"]) else ""
+    ax.plot(xl, fit["prefactor"] * xl ** fit["exponent"], "-", color=color, lw=1.4, alpha=0.7,
+            label=f"{label}: slope {fit['exponent']:.2f} ± {fit['err']:.2f}{boot}")
+    if np.isfinite(fit["predicted"]):
+        xm = math.sqrt(xs.min() * xs.max())
+        reference(ax, xm, fit["prefactor"] * xm ** fit["exponent"] * 1.3, fit["predicted"],
+                  math.sqrt(xs.max() / xs.min()) * 1.1, f"predicted {fit['predicted']:+g}",
+                  color="0.35")
+
+
+def across_figure(res: dict, N: int | None = None) -> Figure:
+    """The eight panels of the module docstring for one N (default: the largest)."""
+    Ns = sorted({t["N"] for t in res["table"]})
+    N = N if N is not None else Ns[-1]
+    rows = sorted((t for t in res["table"] if t["N"] == N), key=lambda t: t["phi"])
+    fits = res["across"][N]
+    fig = new_figure(20, 9.5)
+    ax = fig.subplots(2, 4).ravel()
+    # (a) sigma and p against phi, divergence fits
+    a = ax[0]
+    for k, y in enumerate(("sigma", "pressure")):
+        _points(a, rows, "phi", y, f"C{k}", y if y == "sigma" else "p", xkey_is_phi=True)
+        phi = np.array([t["phi"] for t in rows])
+        for key, ls in (("free", "-"), ("fixed", ":")):
+            f = fits[f"{y}_phi_{key}"]
+            if not np.isfinite(f["beta"]):
+                continue
+            xl = np.linspace(phi.min() - 0.002, min(f["phi_c"] - 5e-4, phi.max() + 0.004), 60)
+            err = f["beta_boot_err"]
+            a.plot(xl, f["prefactor"] * (f["phi_c"] - xl) ** -f["beta"], ls, color=f"C{k}",
+                   lw=1.2, label=f"φ_c = {f['phi_c']:.4f}{' (fixed)' if f['fixed'] else ''}, "
+                                 f"β = {f['beta']:.2f} ± {err:.2f}")
+    a.axvline(PHI_J, color="0.5", lw=0.8, ls="--")
+    a.set_yscale("log")
+    a.set_xlabel("φ")
+    a.set_title("σ, p = A (φ_c − φ)^−β", fontsize=9)
+    # (b) sigma and p against dz
+    a = ax[1]
+    for k, (y, name) in enumerate((("sigma", "sigma_dz"), ("pressure", "pressure_dz"))):
+        xs, _ = _points(a, rows, "dz", y, f"C{k}", "σ" if y == "sigma" else "p")
+        _power(a, fits[name], xs, f"C{k}", "σ" if y == "sigma" else "p")
+    a.set_xscale("log")
+    a.set_yscale("log")
+    a.set_xlabel("δz = 4 − z2")
+    a.set_title("σ, p against δz (Fig. 6e)", fontsize=9)
+    # (c) mu against phi
+    a = ax[2]
+    _points(a, rows, "phi", "mu", "C2", "μ = σ/p", xkey_is_phi=True)
+    a.axhline(0.1, color="0.5", lw=0.8, ls="--", label="μ ≈ 0.1 near jamming")
+    a.set_xlabel("φ")
+    a.set_title("stress ratio μ", fontsize=9)
+    # (d) l_c against p
+    a = ax[3]
+    xs, _ = _points(a, rows, "pressure", "l_c", "C3", "l_c (point response)")
+    _power(a, fits["lc_p"], xs, "C3", "l_c")
+    a.set_xscale("log")
+    a.set_yscale("log")
+    a.set_xlabel("p")
+    a.set_title("l_c against p (Fig. 7b)", fontsize=9)
+    # (e) l_c and the C(r) length against dz
+    a = ax[4]
+    for k, (y, name, lab) in enumerate((("l_c", "lc_dz", "l_c"),
+                                        ("corr_length", "corr_dz", "C(r) 1/e length"))):
+        xs, _ = _points(a, rows, "dz", y, f"C{k + 3}", lab)
+        _power(a, fits[name], xs, f"C{k + 3}", lab)
+    a.set_xscale("log")
+    a.set_yscale("log")
+    a.set_xlabel("δz = 4 − z2")
+    a.set_title("lengths against δz (Fig. 7b)", fontsize=9)
+    # (f) C2 against dz
+    a = ax[5]
+    xs, _ = _points(a, rows, "dz", "C2", "C5", "C₂ = median ω_min √σ")
+    _power(a, fits["C2_dz"], xs, "C5", "C₂")
+    a.set_xscale("log")
+    a.set_yscale("log")
+    a.set_xlabel("δz = 4 − z2")
+    a.set_title("C₂ against δz (ω_min ≈ C₂/√σ)", fontsize=9)
+    # (g) delta_gamma * sigma against sigma
+    a = ax[6]
+    xs, _ = _points(a, rows, "sigma", "dgs", "C6", "δγ·σ (frozen contacts)")
+    _power(a, fits["dgs_sigma"], xs, "C6", "δγ·σ")
+    a.set_xscale("log")
+    a.set_xlabel("σ")
+    a.set_title("δγ ∝ 1/σ: δγ·σ flat (Fig. 6c)", fontsize=9)
+    # (h) the per-sample exponent of omega_min(sigma)
+    a = ax[7]
+    _points(a, rows, "phi", "omega_exp", "C7", "per-sample exponent of ω_min(σ)",
+            xkey_is_phi=True)
+    a.axhline(-0.5, color="0.5", lw=0.8, ls="--", label="predicted −1/2")
+    a.set_xlabel("φ")
+    a.set_title("ω_min ∝ σ^x within one sample (Fig. 6d)", fontsize=9)
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=6.5)
+    n = sum(t["n_samples"] for t in rows)
+    fig.suptitle(f"Suspension ensembles across φ, N = {N}: {len(rows)} ensembles, {n} samples "
+                 f"(mean ± standard error; grey: one sample each)", fontsize=10)
+    return fig
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m parflow.plot.suspension_ensembles",
+                                 description="Figures of suspension ensembles across phi")
+    ap.add_argument("folders", nargs="+", metavar="FOLDER")
+    ap.add_argument("--out", default=None, help="output folder (default: the first FOLDER)")
+    ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
+    args = ap.parse_args(argv)
+    res = analyse(args.folders)
+    if not res["table"]:
+        print("parflow.plot.suspension_ensembles: no suspension ensemble with a finished "
+              f"sample under {' '.join(args.folders)}", file=sys.stderr)
+        return 2
+    out = args.out or args.folders[0]
+    os.makedirs(out, exist_ok=True)
+    for N in sorted({t["N"] for t in res["table"]}):
+        p = os.path.join(out, f"suspension_ensembles_across_N{N}.{args.format}")
+        across_figure(res, N).savefig(p, format=args.format)
+        print(p)
+    print("\n".join(format_table(res)), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
