@@ -149,6 +149,14 @@ def _direct(path, from_strain=0.1):
     return sigma, 4.0 - z2m, dgs, c2
 
 
+def _instant_points(path, from_strain=0.1):
+    with h5py.File(path) as f:
+        inst = [dict(g.attrs) | {n: g[n][()] for n in g} for g in f["analysis"].values()]
+    inst = [a for a in inst if a["strain"] >= from_strain - 1e-12]
+    return (np.array([a["frozen_sigma"] for a in inst]),
+            np.array([a["frozen_omega_min"] for a in inst]))
+
+
 @pytest.mark.serial_only
 def test_per_phi_against_numpy_on_sample_files(tiny, tmp_path):
     res = sae.analyse([str(tiny)], n_boot=50)
@@ -165,6 +173,20 @@ def test_per_phi_against_numpy_on_sample_files(tiny, tmp_path):
             assert t[q]["values"] == pytest.approx(v.tolist(), rel=1e-9), q
             assert t[q]["mean"] == pytest.approx(v.mean(), rel=1e-9), q
             assert t[q]["sem"] == pytest.approx(v.std(ddof=1) / math.sqrt(3), rel=1e-8), q
+        # the omega_min(sigma) exponent over the instants of the three samples pooled, and its
+        # jackknife over the samples
+        pts = [_instant_points(p) for p in files]
+
+        def slope(keep):
+            x = np.concatenate([q[0] for q, k in zip(pts, keep) if k])
+            y = np.concatenate([q[1] for q, k in zip(pts, keep) if k])
+            return np.polyfit(np.log(x), np.log(y), 1)[0]
+        full = slope([True] * 3)
+        loo = np.array([slope([j != i for j in range(3)]) for i in range(3)])
+        g = t["omega_exp_pooled"]
+        assert g["mean"] == pytest.approx(full, rel=1e-9) and g["n"] == 3
+        assert g["sem"] == pytest.approx(math.sqrt(2 / 3 * np.sum((loo - loo.mean()) ** 2)),
+                                         rel=1e-8)
         assert t["jamming_rate"]["n_jammed"] == 0
         assert t["jamming_rate"]["strain"] == pytest.approx(0.6, rel=1e-9)
     # denser -> more stress: the two-point power laws exist and have bootstrap errors

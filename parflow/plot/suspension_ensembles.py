@@ -5,7 +5,8 @@ from ``parflow.post.suspension_across_ensembles`` (Figs. 6e and 7b with error ba
   free, and fixed at phi_J); sigma and p against dz = 4 - z2 (predicted slope -2.7); mu
   against phi (~0.1 near jamming); l_c against p (0.18) and against dz (-1/2, with the
   C(r) length); C2 = median omega_min sqrt(sigma) against dz (1/2); delta_gamma * sigma
-  against sigma (flat); the per-sample exponent of omega_min(sigma) against phi (-1/2).
+  against sigma (flat); the exponents of omega_min(sigma) (-1/2) and delta_gamma(sigma) (-1)
+  over the instants of each phi pooled, against phi.
   Every point is the ensemble mean with its standard error; grey dots are the samples.
 
 ``python -m parflow.plot.suspension_ensembles FOLDER... [--out DIR]`` (FOLDER as for
@@ -132,11 +133,16 @@ def across_figure(res: dict, N: int | None = None) -> Figure:
     a.set_title("δγ ∝ 1/σ: δγ·σ flat (Fig. 6c)", fontsize=9)
     # (h) the per-sample exponent of omega_min(sigma)
     a = ax[7]
-    _points(a, rows, "phi", "omega_exp", "C7", "per-sample exponent of ω_min(σ)",
-            xkey_is_phi=True)
-    a.axhline(-0.5, color="0.5", lw=0.8, ls="--", label="predicted −1/2")
+    for k, (q, lab, pred) in enumerate((("omega_exp_pooled", "ω_min(σ)", -0.5),
+                                        ("dgamma_exp_pooled", "δγ(σ)", -1.0))):
+        phi = np.array([t["phi"] for t in rows]) + (k - 0.5) * 4e-4
+        m = np.array([t[q]["mean"] for t in rows])
+        e = np.array([t[q]["sem"] for t in rows])
+        a.errorbar(phi, m, yerr=np.nan_to_num(e), fmt="o", color=f"C{k + 7}", ms=4.5,
+                   capsize=2.5, label=f"exponent of {lab}, instants of a φ pooled (jackknife)")
+        a.axhline(pred, color=f"C{k + 7}", lw=0.8, ls="--", label=f"predicted {pred:+g}")
     a.set_xlabel("φ")
-    a.set_title("ω_min ∝ σ^x within one sample (Fig. 6d)", fontsize=9)
+    a.set_title("ω_min ∝ σ^x, δγ ∝ σ^y within one φ (Figs. 6c-d)", fontsize=9)
     for a in ax:
         a.grid(True, which="both", alpha=0.3)
         a.legend(fontsize=6.5)

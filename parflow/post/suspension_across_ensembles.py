@@ -18,13 +18,16 @@ status is complete, jammed or budget; the statistics window is the scene's, as i
   sigma if omega_min ~ 1/sqrt(sigma); the networks' C2, predicted ~ dz^(1/2));
 * ``omega_exp``, ``dgamma_exp``: the sample's own power-law exponents of omega_min and
   delta_gamma against sigma over its instants (predicted -1/2 and -1; one sample spans a
-  narrow range of sigma, hence the scatter);
+  narrow range of sigma, hence a large scatter: at phi = 0.835 one sample gives -12);
 * ``C_relax``: the median C of the frozen network's relaxation, dsigma/dgamma = -sigma^2/C;
 * ``strain``: the strain the sample ran (the exposure of the jamming rate).
 
 Per phi (:func:`per_phi`): for each quantity the mean over the samples where it is finite,
 the standard error s / sqrt(n) (ddof = 1) and n; the jamming rate per unit strain with its
-Poisson error (``post.ensemble.jamming_rate``).
+Poisson error (``post.ensemble.jamming_rate``); ``omega_exp_pooled`` and
+``dgamma_exp_pooled``, the exponents of omega_min(sigma) and delta_gamma(sigma) fitted over
+the instants of all samples pooled, with a jackknife error over the samples
+(:func:`pooled_exponent`).
 
 Across phi (:func:`across`), every fit with a bootstrap over the samples: the samples of each
 phi are redrawn with replacement :data:`N_BOOT` times (fixed seed), *the same draw for every
@@ -55,7 +58,7 @@ import sys
 
 import numpy as np
 
-from .ensemble import DONE, jamming_rate, load_sample, mean_sem, sample_files
+from .ensemble import DONE, jackknife, jamming_rate, load_sample, mean_sem, sample_files
 from .fits import fit_power_law_err
 from .network_across_ensembles import _jsonable, find_ensembles
 from ..packing.mixture import PHI_J_2D
@@ -99,6 +102,8 @@ def sample_values(run) -> dict:
     c2 = om * np.sqrt(np.where(sig > 0, sig, np.nan))
     c2 = c2[np.isfinite(c2)]
     out["C2"] = float(np.median(c2)) if c2.size else nan
+    out["points"] = dict(omega=(sig, om), dgamma=tuple(np.asarray(a, float) for a in
+                                                      f.get("delta_gamma_points", ([], []))))
     out["omega_exp"] = float(f.get("omega_min", {}).get("exponent", nan))
     out["dgamma_exp"] = float(f.get("delta_gamma", {}).get("exponent", nan))
     out["C_relax"] = float(f.get("relax_frozen", {}).get("C_median", nan))
@@ -141,7 +146,27 @@ def per_phi(ens: dict) -> dict:
         m, e, n = mean_sem(v)
         out[q] = dict(mean=float(m), sem=float(e), n=int(n), values=v.tolist())
     out["jamming_rate"] = jamming_rate([x["status"] for x in s], [x["strain"] for x in s])
+    for key in ("omega", "dgamma"):
+        out[f"{key}_exp_pooled"] = pooled_exponent([x["points"][key] for x in flowing])
     return out
+
+
+def pooled_exponent(points: list) -> dict:
+    """The power-law exponent of y against sigma over the analysis instants of all samples
+    pooled (``points``: (sigma, y) per sample; one sample spans too narrow a range of sigma
+    for a fit of its own), with its jackknife error over the samples (leave one out)."""
+    n = len(points)
+
+    def est(keep):
+        xs = [np.asarray(p[0], float) for p, k in zip(points, keep) if k]
+        ys = [np.asarray(p[1], float) for p, k in zip(points, keep) if k]
+        if not xs:
+            return math.nan
+        return fit_power_law_err(np.concatenate(xs), np.concatenate(ys))["exponent"]
+    if n == 0:
+        return dict(mean=math.nan, sem=math.nan, n=0)
+    value, err = jackknife(est, n)
+    return dict(mean=float(value), sem=float(err), n=int(n))
 
 
 # ---------------------------------------------------------------------------------------
@@ -295,7 +320,7 @@ def analyse(paths, n_boot: int = N_BOOT) -> dict:
 # report
 # ---------------------------------------------------------------------------------------
 TABLE_COLUMNS = ("sigma", "pressure", "mu", "z2", "dz", "l_c", "corr_length", "dgs", "C2",
-                 "omega_exp", "C_relax")
+                 "omega_exp_pooled", "dgamma_exp_pooled", "C_relax")
 
 
 def _pm(d: dict, digits: int = 4) -> str:
