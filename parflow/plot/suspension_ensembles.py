@@ -57,6 +57,19 @@ def _power(ax, fit, xs, color, label):
                   color="0.35")
 
 
+def _power_panel(a, rows, fits, series, xlabel, title, ylog=True):
+    """Log-log panel: for each (y, x, fit name, label, colour) the means, samples and the
+    fitted power law of ``fits[name]`` with its predicted slope."""
+    for y, x, name, lab, color in series:
+        xs, _ = _points(a, rows, x, y, color, lab)
+        _power(a, fits[name], xs, color, lab.split(" ")[0])
+    a.set_xscale("log")
+    if ylog:
+        a.set_yscale("log")
+    a.set_xlabel(xlabel)
+    a.set_title(title, fontsize=9)
+
+
 def across_figure(res: dict, N: int | None = None) -> Figure:
     """The eight panels of the module docstring for one N (default: the largest)."""
     Ns = sorted({t["N"] for t in res["table"]})
@@ -83,55 +96,25 @@ def across_figure(res: dict, N: int | None = None) -> Figure:
     a.set_yscale("log")
     a.set_xlabel("φ")
     a.set_title("σ, p = A (φ_c − φ)^−β", fontsize=9)
-    # (b) sigma and p against dz
-    a = ax[1]
-    for k, (y, name) in enumerate((("sigma", "sigma_dz"), ("pressure", "pressure_dz"))):
-        xs, _ = _points(a, rows, "dz", y, f"C{k}", "σ" if y == "sigma" else "p")
-        _power(a, fits[name], xs, f"C{k}", "σ" if y == "sigma" else "p")
-    a.set_xscale("log")
-    a.set_yscale("log")
-    a.set_xlabel("δz = 4 − z2")
-    a.set_title("σ, p against δz (Fig. 6e)", fontsize=9)
-    # (c) mu against phi
-    a = ax[2]
+    _power_panel(ax[1], rows, fits, (("sigma", "dz", "sigma_dz", "σ", "C0"),
+                                     ("pressure", "dz", "pressure_dz", "p", "C1")),
+                 "δz = 4 − z2", "σ, p against δz (Fig. 6e)")
+    a = ax[2]                                               # mu against phi
     _points(a, rows, "phi", "mu", "C2", "μ = σ/p", xkey_is_phi=True)
     a.axhline(0.1, color="0.5", lw=0.8, ls="--", label="μ ≈ 0.1 near jamming")
     a.set_xlabel("φ")
     a.set_title("stress ratio μ", fontsize=9)
-    # (d) l_c against p
-    a = ax[3]
-    xs, _ = _points(a, rows, "pressure", "l_c", "C3", "l_c (point response)")
-    _power(a, fits["lc_p"], xs, "C3", "l_c")
-    a.set_xscale("log")
-    a.set_yscale("log")
-    a.set_xlabel("p")
-    a.set_title("l_c against p (Fig. 7b)", fontsize=9)
-    # (e) l_c and the C(r) length against dz
-    a = ax[4]
-    for k, (y, name, lab) in enumerate((("l_c", "lc_dz", "l_c"),
-                                        ("corr_length", "corr_dz", "C(r) 1/e length"))):
-        xs, _ = _points(a, rows, "dz", y, f"C{k + 3}", lab)
-        _power(a, fits[name], xs, f"C{k + 3}", lab)
-    a.set_xscale("log")
-    a.set_yscale("log")
-    a.set_xlabel("δz = 4 − z2")
-    a.set_title("lengths against δz (Fig. 7b)", fontsize=9)
-    # (f) C2 against dz
-    a = ax[5]
-    xs, _ = _points(a, rows, "dz", "C2", "C5", "C₂ = median ω_min √σ")
-    _power(a, fits["C2_dz"], xs, "C5", "C₂")
-    a.set_xscale("log")
-    a.set_yscale("log")
-    a.set_xlabel("δz = 4 − z2")
-    a.set_title("C₂ against δz (ω_min ≈ C₂/√σ)", fontsize=9)
-    # (g) delta_gamma * sigma against sigma
-    a = ax[6]
-    xs, _ = _points(a, rows, "sigma", "dgs", "C6", "δγ·σ (frozen contacts)")
-    _power(a, fits["dgs_sigma"], xs, "C6", "δγ·σ")
-    a.set_xscale("log")
-    a.set_xlabel("σ")
-    a.set_title("δγ ∝ 1/σ: δγ·σ flat (Fig. 6c)", fontsize=9)
-    # (h) the per-sample exponent of omega_min(sigma)
+    _power_panel(ax[3], rows, fits, (("l_c", "pressure", "lc_p", "l_c (point response)", "C3"),),
+                 "p", "l_c against p (Fig. 7b)")
+    _power_panel(ax[4], rows, fits, (("l_c", "dz", "lc_dz", "l_c", "C3"),
+                                     ("corr_length", "dz", "corr_dz", "C(r) 1/e length", "C4")),
+                 "δz = 4 − z2", "lengths against δz (Fig. 7b)")
+    _power_panel(ax[5], rows, fits, (("C2", "dz", "C2_dz", "C₂ = median ω_min √σ", "C5"),),
+                 "δz = 4 − z2", "C₂ against δz (ω_min ≈ C₂/√σ)")
+    _power_panel(ax[6], rows, fits, (("dgs", "sigma", "dgs_sigma", "δγ·σ (frozen contacts)",
+                                      "C6"),), "σ", "δγ ∝ 1/σ: δγ·σ flat (Fig. 6c)",
+                 ylog=False)
+    # (h) the exponents of omega_min(sigma) and delta_gamma(sigma) within one phi
     a = ax[7]
     for k, (q, lab, pred) in enumerate((("omega_exp_pooled", "ω_min(σ)", -0.5),
                                         ("dgamma_exp_pooled", "δγ(σ)", -1.0))):
