@@ -277,18 +277,23 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
 
 
 def _check_sample_files(scene: dict, samples: int, plan: list) -> None:
-    """A ``model.configuration_file`` with ``{sample}`` must name an existing file for every
-    sample that starts afresh (checked before any sample runs, not one failure per sample)."""
+    """A ``model.configuration_file`` with ``{sample}``: refused before any sample runs if no
+    sample that starts afresh has its file (a wrong path); if only some lack one (e.g. a
+    state that did not relax when compressed), those samples fail with the model's message
+    and are recorded as failed, like any failing sample, and the others run."""
     path = str(scene["model"].get("configuration_file", "") or "")
     if SAMPLE_FIELD not in path:
         return
-    missing = [path.replace(SAMPLE_FIELD, f"{k:04d}") for k in range(samples)
-               if plan[k] == "new" and not os.path.isfile(path.replace(SAMPLE_FIELD, f"{k:04d}"))]
+    new = [k for k in range(samples) if plan[k] == "new"]
+    missing = [k for k in new if not os.path.isfile(path.replace(SAMPLE_FIELD, f"{k:04d}"))]
+    if new and len(missing) == len(new):
+        raise InputError(f"model.configuration_file {path!r}: no sample has its file (first: "
+                         f"{path.replace(SAMPLE_FIELD, f'{missing[0]:04d}')!r}); prepare one per "
+                         f"sample (python -m parflow.prepare compress ENSEMBLE_FOLDER --out "
+                         f"'...{SAMPLE_FIELD}.npz')")
     if missing:
-        raise InputError(f"model.configuration_file {path!r}: {len(missing)} of {samples} "
-                         f"samples have no file (first: {missing[0]!r}); prepare one per sample "
-                         f"(python -m parflow.prepare compress ENSEMBLE_FOLDER --out "
-                         f"'...{SAMPLE_FIELD}.npz') or run fewer samples")
+        log.warning("WARNING: model.configuration_file %r: samples %s have no file and will "
+                    "be recorded as failed", path, ", ".join(map(str, missing)))
 
 
 def _claim(folder: str, k: int) -> bool:

@@ -20,7 +20,8 @@ An ensemble's output folder compresses every sample file in it, into one .npz pe
 (``{sample}`` in --out: the 4-digit index); an ensemble scene whose
 ``model.configuration_file`` holds ``{sample}`` then starts sample k from file k
 (``parflow.ensemble``; docs/ensembles.md).  The files are written one by one (each whole, by a
-rename): on an error the ones before it stay, and ``--overwrite`` redoes them.
+rename); a sample whose compressed state does not relax (it is jammed at that phi) is
+reported and the others go on (exit 1 if some failed, 2 if all did).
 """
 from __future__ import annotations
 
@@ -174,8 +175,20 @@ def main(argv=None) -> int:
                              f"ensemble folder; {a.run!r} is not one")
         else:
             jobs = [(a.run, a.out)]
-        for run, out in jobs:
-            print(_compress_one(run, a.phi, out, a.overwrite, a.which), flush=True)
+        if len(jobs) == 1:
+            print(_compress_one(jobs[0][0], a.phi, jobs[0][1], a.overwrite, a.which), flush=True)
+            return 0
+        failed = []
+        for run, out in jobs:        # an ensemble: a sample that does not relax is reported
+            try:
+                print(_compress_one(run, a.phi, out, a.overwrite, a.which), flush=True)
+            except InputError as exc:
+                failed.append(f"{os.path.basename(run)}: {str(exc).removeprefix('prepare: ')}")
+        if failed:
+            print(f"parflow.prepare: error: {len(failed)} of {len(jobs)} samples not compressed "
+                  f"(their start files are missing: the ensemble records those samples as "
+                  f"failed): " + "; ".join(failed), file=sys.stderr)
+            return 2 if len(failed) == len(jobs) else 1
     except InputError as exc:
         print(f"parflow.prepare: error: {exc}", file=sys.stderr)
         return 2

@@ -103,6 +103,9 @@ def test_ensemble_folder_compressed_into_one_start_per_sample(tmp_path):
     res = run("compress", tmp_path / "ens", "--phi", 0.78, "--out", tmp_path / "conf" / "c.npz",
               module="parflow.prepare")
     assert res.returncode == 2 and "{sample}" in res.stderr and len(res.stderr.splitlines()) == 1
+    res = run("compress", tmp_path / "ens", "--phi", 0.86, "--out", out, module="parflow.prepare")
+    assert res.returncode == 2 and "2 of 2 samples not compressed" in res.stderr    # > phi_J
+    assert len(res.stderr.strip().splitlines()) == 1
     res = run("compress", tmp_path / "ens", "--phi", 0.78, "--out", out, module="parflow.prepare")
     assert res.returncode == 0, res.stderr
     assert sorted(os.listdir(tmp_path / "conf")) == ["c_0000.npz", "c_0001.npz"]
@@ -123,12 +126,21 @@ def test_ensemble_folder_compressed_into_one_start_per_sample(tmp_path):
     assert np.allclose(r - np.floor(r / box) * box, pos1, atol=1e-12)
     with h5py.File(tmp_path / "ens2" / "sample_0000.h5") as f:
         assert f.attrs["status"] == "complete"
-    # three samples, two files: refused before any sample runs
+    # three samples, two files: the third is recorded as failed, the others run (exit 1)
     (tmp_path / "c.toml").write_text(ENSEMBLE_SCENE.format(phi=0.78, config=config, samples=3,
                                                            strain=0.01))
     res = run(tmp_path / "c.toml", "--output", tmp_path / "ens3", "--quiet", "--no-plots")
-    assert res.returncode == 2 and "1 of 3 samples have no file" in res.stderr
-    assert not (tmp_path / "ens3" / "sample_0000.h5").exists()
+    assert res.returncode == 1 and "c_0002.npz" in res.stderr
+    with h5py.File(tmp_path / "ens3" / "ensemble.h5") as f:
+        st = [x.decode() if isinstance(x, bytes) else str(x) for x in f["status"][()]]
+    assert st == ["complete", "complete", "failed"]
+    # no file at all: refused before any sample runs
+    (tmp_path / "e.toml").write_text(ENSEMBLE_SCENE.format(
+        phi=0.78, config=config.replace("c_{sample}", "x_{sample}"), samples=2, strain=0.01))
+    res = run(tmp_path / "e.toml", "--output", tmp_path / "ens4", "--quiet", "--no-plots")
+    assert res.returncode == 2 and "no sample has its file" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "ens4" / "sample_0000.h5").exists()
     # {sample} in a single run
     (tmp_path / "d.toml").write_text(ENSEMBLE_SCENE.format(phi=0.78, config=config, samples=3,
                                                            strain=0.01).replace("[ensemble]\nsamples = 3\n", ""))
