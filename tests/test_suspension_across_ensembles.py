@@ -199,6 +199,11 @@ def test_per_phi_against_numpy_on_sample_files(tiny, tmp_path):
     assert out.stat().st_size > 0
 
 
+def test_fixed_phi_c_is_the_mixtures_phi_j():
+    from parflow.packing.mixture import PHI_J_2D
+    assert sae.PHI_J == PHI_J_2D
+
+
 def test_main_without_ensembles_fails_with_one_line(tmp_path, capsys):
     assert sae.main([str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()

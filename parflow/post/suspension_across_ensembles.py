@@ -61,10 +61,10 @@ import numpy as np
 from .ensemble import DONE, jackknife, jamming_rate, load_sample, mean_sem, sample_files
 from .fits import fit_power_law_err
 from .network_across_ensembles import _jsonable, find_ensembles
-from ..packing.mixture import PHI_J_2D
 from .suspension import suspension_fits
 
-PHI_J = PHI_J_2D                  # phi_J of the mixture (packing.mixture): the fixed phi_c
+PHI_J = 0.843                     # phi_J of the mixture, = packing.mixture.PHI_J_2D (post does
+#                                   not import the model side; tested equal): the fixed phi_c
 PHI_C_MAX = 0.9                   # the free phi_c is searched in (max phi + 1e-4, PHI_C_MAX)
 PHI_C_GRID = 4000
 N_BOOT = 1000
