@@ -353,24 +353,35 @@ def _jsonable(x):
     return x
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m parflow.post.network_across_ensembles",
-                                 description="C, C2, omega*, l_c per dz over network "
-                                             "ensembles, and their power laws in dz")
+def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str) -> int:
+    """The command line of an across-ensembles analysis: FOLDER... [--json OUT] [--boot B];
+    prints ``format_table(analyse(folders, boot))``; exit 2 with the one line ``empty`` when
+    no ensemble is found, or for a negative --boot."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("folders", nargs="+", metavar="FOLDER",
                     help="ensemble folders, or folders holding them")
     ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
     ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples ({N_BOOT})")
     args = ap.parse_args(argv)
+    name = prog.rsplit(".", 1)[-1]
+    if args.boot < 0:
+        print(f"{name}: --boot must be >= 0 (0: no bootstrap)", file=sys.stderr)
+        return 2
     res = analyse(args.folders, args.boot)
     if not res["table"]:
-        print("network_across_ensembles: no network ensemble found", file=sys.stderr)
+        print(f"{name}: {empty}", file=sys.stderr)
         return 2
     print("\n".join(format_table(res)))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(_jsonable(res), fh, indent=1)
     return 0
+
+
+def main(argv=None) -> int:
+    return run_cli(argv, "python -m parflow.post.network_across_ensembles",
+                   "C, C2, omega*, l_c per dz over network ensembles, and their power laws in dz",
+                   analyse, format_table, "no network ensemble found")
 
 
 if __name__ == "__main__":

@@ -51,8 +51,6 @@ ensemble folders.  Figures: ``python -m parflow.plot.suspension_ensembles``.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 
@@ -60,7 +58,7 @@ import numpy as np
 
 from .ensemble import DONE, jackknife, jamming_rate, load_sample, mean_sem, sample_files
 from .fits import fit_power_law_err
-from .network_across_ensembles import _jsonable, find_ensembles
+from .network_across_ensembles import find_ensembles, run_cli
 from .suspension import suspension_fits
 
 PHI_J = 0.843                     # phi_J of the mixture, = packing.mixture.PHI_J_2D (post does
@@ -365,30 +363,11 @@ def format_table(res: dict) -> list[str]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m parflow.post.suspension_across_ensembles",
-                                 description="sigma, p, mu, z, l_c, delta_gamma*sigma, C2 per "
-                                             "phi over suspension ensembles, and their laws "
-                                             "across phi")
-    ap.add_argument("folders", nargs="+", metavar="FOLDER",
-                    help="ensemble folders, or folders holding them")
-    ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
-    ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples ({N_BOOT})")
-    args = ap.parse_args(argv)
-    if args.boot < 0:
-        print("suspension_across_ensembles: --boot must be >= 0 (0: no bootstrap)",
-              file=sys.stderr)
-        return 2
-    res = analyse(args.folders, args.boot)
-    if not res["table"]:
-        print("suspension_across_ensembles: no suspension ensemble with a finished sample "
-              f"under {' '.join(args.folders)} (run one: runs/ensemble_suspension_phi*.toml)",
-              file=sys.stderr)
-        return 2
-    print("\n".join(format_table(res)))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(_jsonable(res), fh, indent=1)
-    return 0
+    return run_cli(argv, "python -m parflow.post.suspension_across_ensembles",
+                   "sigma, p, mu, z, l_c, delta_gamma*sigma, C2 per phi over suspension "
+                   "ensembles, and their laws across phi", analyse, format_table,
+                   "no suspension ensemble with a finished sample found (run one: "
+                   "runs/ensemble_suspension_phi*.toml)")
 
 
 if __name__ == "__main__":
