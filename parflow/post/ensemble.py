@@ -106,6 +106,22 @@ def sample_files(folder: str) -> list[tuple[int, str]]:
     return sorted(out)
 
 
+def finished_samples(folder: str, model: str):
+    """(run, row) for each sample of ``folder`` whose file loads, is of ``model`` and says
+    complete, jammed or budget (:data:`DONE`); row = its index, seed, status and last step.
+    A damaged sample file does not enter (as in the summary)."""
+    for k, path in sample_files(folder):
+        try:
+            r = load_sample(path)
+        except Exception:
+            continue
+        status = str(r.attrs.get("status", ""))
+        if status not in DONE or r.model != model:
+            continue
+        yield r, dict(sample=k, seed=int(r.attrs.get("sample_seed", -1)), status=status,
+                      steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0)
+
+
 # ---------------------------------------------------------------------------------------
 # statistics
 # ---------------------------------------------------------------------------------------

@@ -60,7 +60,7 @@ import sys
 
 import numpy as np
 
-from .ensemble import DONE, jackknife, load_sample, mean_sem, network_curves, sample_files
+from .ensemble import finished_samples, jackknife, mean_sem, network_curves
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
@@ -133,14 +133,7 @@ def read_ensemble(folder: str) -> dict:
     index, seed, status, steps and :func:`sample_values`, and N, z, dz of the ensemble;
     ``C_curve`` (:func:`curve_C` of their averaged reversed branch)."""
     rows, runs = [], []
-    for k, path in sample_files(folder):
-        try:
-            r = load_sample(path)
-        except Exception:              # a damaged sample file does not enter (as the summary)
-            continue
-        status = str(r.attrs.get("status", ""))
-        if status not in DONE or r.model != "network":
-            continue
+    for r, row in finished_samples(folder, "network"):
         fits = network_fits(r)
         fw = forward_rows(r)
         fits["gamma_j"] = float(r.ts["gamma"][fw][-1]) if fw is not None else float("nan")
@@ -153,10 +146,8 @@ def read_ensemble(folder: str) -> dict:
                  for a in r.analysis if "omega" in a]
             v[key] = float(np.nanmean(w)) if np.isfinite(w).any() else float("nan")
         runs.append(r)
-        rows.append(dict(sample=k, seed=int(r.attrs.get("sample_seed", -1)), status=status,
-                         steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0,
-                         N=int(r.param("N")), z=network_z(r), dz=network_dz(r),
-                         has_spectrum=any("omega" in a for a in r.analysis), **v))
+        rows.append(row | dict(N=int(r.param("N")), z=network_z(r), dz=network_dz(r),
+                               has_spectrum=any("omega" in a for a in r.analysis), **v))
     curve = network_curves(runs).get("dsigma_dgamma_reverse") if runs else None
     return dict(folder=folder, samples=rows, C_curve=curve_C(curve))
 

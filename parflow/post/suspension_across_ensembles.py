@@ -56,7 +56,7 @@ import sys
 
 import numpy as np
 
-from .ensemble import DONE, jackknife, jamming_rate, load_sample, mean_sem, sample_files
+from .ensemble import finished_samples, jackknife, jamming_rate, mean_sem
 from .fits import fit_power_law_err
 from .network_across_ensembles import find_ensembles, run_cli
 from .suspension import suspension_fits
@@ -116,18 +116,7 @@ def sample_values(run) -> dict:
 def read_ensemble(folder: str) -> dict:
     """The finished suspension samples of one ensemble folder: index, seed, status, steps and
     :func:`sample_values`; and every sample's status (for the jamming rate)."""
-    rows = []
-    for k, path in sample_files(folder):
-        try:
-            r = load_sample(path)
-        except Exception:              # a damaged sample file does not enter (as the summary)
-            continue
-        status = str(r.attrs.get("status", ""))
-        if status not in DONE or r.model != "suspension":
-            continue
-        rows.append(dict(sample=k, seed=int(r.attrs.get("sample_seed", -1)), status=status,
-                         steps=int(r.ts["step"][-1]) if len(r.ts.get("step", [])) else 0,
-                         **sample_values(r)))
+    rows = [row | sample_values(r) for r, row in finished_samples(folder, "suspension")]
     return dict(folder=folder, samples=rows)
 
 
