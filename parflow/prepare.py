@@ -31,10 +31,12 @@ import sys
 
 import numpy as np
 
+from .ensemble import SAMPLE_FIELD
 from .geometry import MinImage, cell_at, velocity_gradient
 from .io import RunFile, check_output_path
 from .models import suspension as su
 from .packing.pairs import pair_list
+from .post.ensemble import sample_files
 from .state import InputError
 
 
@@ -99,17 +101,12 @@ def load_run_state(path: str, which: str = "checkpoint"):
         return ck["s"], h0, float(ck["gamma"]), radii, int(ck["step"])
 
 
-SAMPLE_FIELD = "{sample}"
-
-
 def ensemble_runs(folder: str) -> list[tuple[int, str]]:
     """(index, path) of the sample files of an ensemble folder (``FOLDER/ensemble.h5``)."""
     if not os.path.isfile(os.path.join(folder, "ensemble.h5")):
         raise InputError(f"prepare: {folder!r} is a directory but not an ensemble folder (no "
                          f"ensemble.h5): give a run file or an ensemble's output folder")
-    out = sorted((int(n[7:11]), os.path.join(folder, n)) for n in os.listdir(folder)
-                 if len(n) == 14 and n.startswith("sample_") and n.endswith(".h5")
-                 and n[7:11].isdigit())
+    out = sample_files(folder)
     if not out:
         raise InputError(f"prepare: the ensemble folder {folder!r} holds no sample file")
     return out
