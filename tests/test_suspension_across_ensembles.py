@@ -233,3 +233,41 @@ def test_figure_draws_the_ensemble_means(tiny, tmp_path):
     assert pse.main([str(tiny), "--out", str(tmp_path)]) == 0
     assert os.listdir(tmp_path) == ["suspension_ensembles_across_N64.png"]
     assert pse.main([str(tmp_path)]) == 2
+
+
+def _strip_folders(x):
+    if isinstance(x, dict):
+        return {k: _strip_folders(v) for k, v in x.items() if k != "folder"}
+    if isinstance(x, list):
+        return [_strip_folders(v) for v in x]
+    return x
+
+
+@pytest.mark.serial_only
+def test_sample_tables_give_the_analysis_of_the_run_files(tiny, tmp_path, capsys):
+    from parflow.post.network_across_ensembles import _jsonable
+    tables = tmp_path / "tables"
+    assert sae.main([str(tiny), "--boot", "0", "--export", str(tables)]) == 0
+    names = sorted(os.listdir(tables))
+    assert names == ["phi0.7800_N64.json", "phi0.8000_N64.json"]
+    direct = sae.analyse([str(tiny)], n_boot=30)
+    again = sae.analyse([str(tables)], n_boot=30)
+    assert _strip_folders(_jsonable(again)) == _strip_folders(_jsonable(direct))
+    e = sae.load_samples(str(tables / names[0]))
+    assert [x["sample"] for x in e["samples"]] == [0, 1, 2]
+    prov = e["provenance"]
+    assert len(prov["samples"]) == 3 and "[model]" in prov["scene"]
+    assert all(p["created"] for p in prov["samples"])
+    # one phi from its run files, the other from its table
+    mixed = sae.analyse([str(tiny / "phi0.78"), str(tables / names[1])], n_boot=0)
+    assert [t["phi"] for t in mixed["table"]] == pytest.approx([0.78, 0.80])
+    # the same ensemble twice, or a file that is not a table: one line, exit 2
+    capsys.readouterr()
+    assert sae.main([str(tiny / "phi0.78"), str(tables / names[0])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pass one of them" in err[0]
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"kind": "something else"}')
+    assert sae.main([str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a suspension sample table" in err[0]

@@ -138,16 +138,22 @@ def across_figure(res: dict, N: int | None = None) -> Figure:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m parflow.plot.suspension_ensembles",
                                  description="Figures of suspension ensembles across phi")
-    ap.add_argument("folders", nargs="+", metavar="FOLDER")
-    ap.add_argument("--out", default=None, help="output folder (default: the first FOLDER)")
+    ap.add_argument("folders", nargs="+", metavar="PATH",
+                    help="ensemble folders, sample tables (JSON), or folders holding them")
+    ap.add_argument("--out", default=None, help="output folder (default: the first PATH)")
     ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
     args = ap.parse_args(argv)
-    res = analyse(args.folders)
+    try:
+        res = analyse(args.folders)
+    except ValueError as e:
+        print(f"parflow.plot.suspension_ensembles: {e}", file=sys.stderr)
+        return 2
     if not res["table"]:
         print("parflow.plot.suspension_ensembles: no suspension ensemble with a finished "
               f"sample under {' '.join(args.folders)}", file=sys.stderr)
         return 2
-    out = args.out or args.folders[0]
+    first = args.folders[0]
+    out = args.out or (first if os.path.isdir(first) else os.path.dirname(first) or ".")
     os.makedirs(out, exist_ok=True)
     for N in sorted({t["N"] for t in res["table"]}):
         p = os.path.join(out, f"suspension_ensembles_across_N{N}.{args.format}")

@@ -344,21 +344,30 @@ def _jsonable(x):
     return x
 
 
-def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str) -> int:
-    """The command line of an across-ensembles analysis: FOLDER... [--json OUT] [--boot B];
-    prints ``format_table(analyse(folders, boot))``; exit 2 with the one line ``empty`` when
-    no ensemble is found, or for a negative --boot."""
+def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str,
+            export=None) -> int:
+    """The command line of an across-ensembles analysis: FOLDER... [--json OUT] [--boot B]
+    (and [--export DIR] when ``export(folders, DIR)`` is given: it returns the files it
+    wrote); prints ``format_table(analyse(folders, boot))``; exit 2 with one line: ``empty``
+    when no ensemble is found, for a negative --boot, or the ValueError of a bad input."""
     ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("folders", nargs="+", metavar="FOLDER",
                     help="ensemble folders, or folders holding them")
     ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
     ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples ({N_BOOT})")
+    if export is not None:
+        ap.add_argument("--export", metavar="DIR",
+                        help="write each ensemble folder's sample table (JSON) into DIR")
     args = ap.parse_args(argv)
     name = prog.rsplit(".", 1)[-1]
     if args.boot < 0:
         print(f"{name}: --boot must be >= 0 (0: no bootstrap)", file=sys.stderr)
         return 2
-    res = analyse(args.folders, args.boot)
+    try:
+        res = analyse(args.folders, args.boot)
+    except ValueError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 2
     if not res["table"]:
         print(f"{name}: {empty}", file=sys.stderr)
         return 2
@@ -366,6 +375,9 @@ def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(_jsonable(res), fh, indent=1)
+    if export is not None and args.export:
+        for path in export(args.folders, args.export):
+            print(f"{name}: wrote {path}")
     return 0
 
 

@@ -45,20 +45,32 @@ means recomputed and refitted with the weights of the full data held fixed.
   the mixture, ``packing.mixture.PHI_J_2D``), beta by WLS.  For sigma and for p: mu = sigma/p drifts with phi
   (0.27 -> 0.14 over 0.810-0.835), so the two betas differ.
 
-``python -m parflow.post.suspension_across_ensembles FOLDER... [--json OUT]`` prints the
-table and the fits; a FOLDER that is not an ensemble folder is searched one level down for
-ensemble folders.  Figures: ``python -m parflow.plot.suspension_ensembles``.
+Sample tables (:func:`export_samples`, :func:`load_samples`): the per-sample numbers of one
+ensemble (everything above uses, the instants' points included) as one small JSON file
+(kind :data:`SAMPLES_KIND`, with the git commit, version and creation time of each sample's
+run file and the scene of sample 0), so that ensembles run at different times, on machines
+whose run files are gone, enter one analysis: docs/data/suspension_ensembles/ holds those of
+the ensembles docs/suspensions.md quotes.  An analysis reads run folders and tables alike;
+two sources with the same (N, phi) are refused (pass one).
+
+``python -m parflow.post.suspension_across_ensembles PATH... [--json OUT] [--export DIR]``
+prints the table and the fits; a PATH is an ensemble folder, a sample table, or a folder
+searched one level down for both; ``--export DIR`` writes the sample table of every ensemble
+folder read into DIR (``phi0.8100_N4096.json``).  Figures:
+``python -m parflow.plot.suspension_ensembles``.
 """
 from __future__ import annotations
 
+import json
 import math
+import os
 import sys
 
 import numpy as np
 
 from .ensemble import finished_samples, jackknife, jamming_rate, mean_sem
 from .fits import fit_power_law_err
-from .network_across_ensembles import find_ensembles, run_cli
+from .network_across_ensembles import _jsonable, is_ensemble, run_cli
 from .suspension import suspension_fits
 
 PHI_J = 0.843                     # phi_J of the mixture, = packing.mixture.PHI_J_2D (post does
@@ -76,6 +88,9 @@ POWER_LAWS = (("sigma_dz", "sigma", "dz", -2.7), ("pressure_dz", "pressure", "dz
               ("lc_dz", "l_c", "dz", -0.5), ("corr_dz", "corr_length", "dz", -0.5),
               ("C2_dz", "C2", "dz", 0.5), ("dgs_sigma", "dgs", "sigma", 0.0))
 DIVERGENCES = ("sigma", "pressure")
+SAMPLES_KIND = "parflow suspension ensemble samples"
+SAMPLES_VERSION = 1
+ROW_KEYS = ("sample", "seed", "status", "steps", "phi", "N") + QUANTITIES
 
 
 # ---------------------------------------------------------------------------------------
@@ -115,9 +130,81 @@ def sample_values(run) -> dict:
 
 def read_ensemble(folder: str) -> dict:
     """The finished suspension samples of one ensemble folder: index, seed, status, steps and
-    :func:`sample_values`; and every sample's status (for the jamming rate)."""
-    rows = [row | sample_values(r) for r, row in finished_samples(folder, "suspension")]
-    return dict(folder=folder, samples=rows)
+    :func:`sample_values`; and every sample's status (for the jamming rate).  ``provenance``:
+    each sample's git commit, parflow version and creation time, and sample 0's scene."""
+    rows, prov = [], dict(samples=[], scene="")
+    for r, row in finished_samples(folder, "suspension"):
+        rows.append(row | sample_values(r))
+        prov["samples"].append(dict(sample=row["sample"], **{
+            k: str(r.attrs.get(k, "")) for k in ("git_commit", "parflow_version", "created")}))
+        if not prov["scene"]:
+            prov["scene"] = str(r.attrs.get("scene", ""))
+    return dict(folder=folder, samples=rows, provenance=prov)
+
+
+def export_samples(ens: dict, path: str) -> None:
+    """Write the sample table of ``ens`` (:func:`read_ensemble`) to ``path`` (JSON; written to
+    a twin and renamed: never half-written; NaN as null)."""
+    rows = []
+    for x in ens["samples"]:
+        r = {k: x[k] for k in ROW_KEYS}
+        r["points"] = {k: [np.asarray(a, float).tolist() for a in v]
+                       for k, v in x["points"].items()}
+        rows.append(r)
+    doc = dict(kind=SAMPLES_KIND, version=SAMPLES_VERSION,
+               source=os.path.basename(os.path.normpath(ens["folder"])),
+               provenance=ens.get("provenance", {}), samples=rows)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(_jsonable(doc), fh, indent=1, allow_nan=False)
+    os.replace(tmp, path)
+
+
+def load_samples(path: str) -> dict:
+    """An ensemble (as :func:`read_ensemble`) from a sample table written by
+    :func:`export_samples`; ValueError naming the file if it is not one."""
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable JSON sample table ({e})") from None
+    if not isinstance(doc, dict) or doc.get("kind") != SAMPLES_KIND:
+        raise ValueError(f"{path}: not a suspension sample table (kind "
+                         f"{doc.get('kind') if isinstance(doc, dict) else None!r})")
+    if doc.get("version") != SAMPLES_VERSION:
+        raise ValueError(f"{path}: sample table version {doc.get('version')!r}, this parflow "
+                         f"reads {SAMPLES_VERSION}")
+    rows = []
+    for r in doc.get("samples", []):
+        missing = [k for k in ROW_KEYS + ("points",) if k not in r]
+        if missing:
+            raise ValueError(f"{path}: sample {r.get('sample')} lacks {', '.join(missing)}")
+        row = {k: r[k] for k in ("sample", "seed", "status", "steps", "N")}
+        row.update({k: math.nan if r[k] is None else float(r[k])
+                    for k in ("phi",) + QUANTITIES})
+        row["points"] = {k: tuple(np.array([math.nan if u is None else u for u in a], float)
+                                  for a in v) for k, v in r["points"].items()}
+        rows.append(row)
+    return dict(folder=path, samples=rows, provenance=doc.get("provenance", {}))
+
+
+def find_sources(paths) -> tuple[list[str], list[str]]:
+    """(ensemble folders, sample tables) among ``paths`` and, for a folder that is not an
+    ensemble, among its entries."""
+    folders, tables = [], []
+
+    def take(p):
+        if is_ensemble(p):
+            folders.append(p)
+        elif os.path.isfile(p) and p.endswith(".json"):
+            tables.append(p)
+    for p in paths:
+        if is_ensemble(p) or not os.path.isdir(p):
+            take(p)
+        else:
+            for q in sorted(os.listdir(p)):
+                take(os.path.join(p, q))
+    return folders, tables
 
 
 def per_phi(ens: dict) -> dict:
@@ -296,11 +383,43 @@ def across(table: list[dict], n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> di
     return out
 
 
+def read_sources(paths) -> list[dict]:
+    """The ensembles under ``paths`` (:func:`find_sources`) with a finished sample; ValueError
+    for two of the same (N, phi)."""
+    folders, tables = find_sources(paths)
+    ens = [read_ensemble(f) for f in folders] + [load_samples(t) for t in tables]
+    ens = [e for e in ens if e["samples"]]
+    seen = {}
+    for e in ens:
+        key = (int(e["samples"][0]["N"]), round(float(e["samples"][0]["phi"]), 6))
+        if key in seen:
+            raise ValueError(f"{seen[key]} and {e['folder']} are both N = {key[0]}, phi = "
+                             f"{key[1]:g}: pass one of them")
+        seen[key] = e["folder"]
+    return ens
+
+
 def analyse(paths, n_boot: int = N_BOOT) -> dict:
     """The suspension ensembles under ``paths``: the per-phi table and the fits across phi."""
-    ens = [read_ensemble(f) for f in find_ensembles(paths)]
-    table = sorted((per_phi(e) for e in ens if e["samples"]), key=lambda t: (t["N"], t["phi"]))
+    ens = read_sources(paths)
+    table = sorted((per_phi(e) for e in ens), key=lambda t: (t["N"], t["phi"]))
     return dict(table=table, across=across(table, n_boot), phi_j=PHI_J)
+
+
+def export(paths, out_dir: str) -> list[str]:
+    """Write the sample table of every ensemble folder under ``paths`` into ``out_dir``; the
+    files written."""
+    os.makedirs(out_dir, exist_ok=True)
+    written = []
+    for f in find_sources(paths)[0]:
+        e = read_ensemble(f)
+        if not e["samples"]:
+            continue
+        s0 = e["samples"][0]
+        path = os.path.join(out_dir, f"phi{s0['phi']:.4f}_N{int(s0['N'])}.json")
+        export_samples(e, path)
+        written.append(path)
+    return written
 
 
 # ---------------------------------------------------------------------------------------
@@ -356,7 +475,7 @@ def main(argv=None) -> int:
                    "sigma, p, mu, z, l_c, delta_gamma*sigma, C2 per phi over suspension "
                    "ensembles, and their laws across phi", analyse, format_table,
                    "no suspension ensemble with a finished sample found (run one: "
-                   "runs/ensemble_suspension_phi*.toml)")
+                   "runs/ensemble_suspension_phi*.toml)", export=export)
 
 
 if __name__ == "__main__":
