@@ -26,6 +26,27 @@ def git_commit() -> str:
         return "unknown"
 
 
+def kernels() -> str:
+    """The CPU kernels the arithmetic ran on: OpenBLAS's core (its dgemm sums in a core's own
+    order) and numpy's SIMD extensions in use (scripts/env.sh pins both; docs/conventions.md
+    "The same numbers on every machine"), e.g. ``openblas Haswell, numpy AVX2``."""
+    import ctypes
+    try:
+        lib = ctypes.CDLL("libopenblas.so.0")
+        lib.openblas_get_corename.restype = ctypes.c_char_p
+        core = lib.openblas_get_corename().decode()
+    except (OSError, AttributeError):
+        core = "none"
+    try:
+        from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+        simd = [k for k in __cpu_dispatch__ if __cpu_features__.get(k)]
+    except ImportError:
+        simd = []
+    top = next((k for k in reversed(simd) if k.startswith("AVX512")), None) or \
+        ("AVX2" if "AVX2" in simd else (simd[-1] if simd else "baseline"))
+    return f"openblas {core}, numpy {top}"
+
+
 def versions() -> str:
     """parflow, python, numpy, scipy, h5py, PETSc, MPI (and slepc4py) versions, one line.
     (Imported here, when a run starts: h5py, scipy and mpi4py are not needed before.)"""
@@ -33,6 +54,7 @@ def versions() -> str:
     v = dict(parflow=__version__, python=sys.version.split()[0], numpy=np.__version__,
              scipy=scipy.__version__, h5py=h5py.__version__,
              petsc=petsc_version(), mpi=MPI.Get_library_version().split("\n")[0])
+    v["kernels"] = kernels()
     try:   # the package version only: importing slepc4py.SLEPc would initialise SLEPc
         import slepc4py  # on this rank alone and make the ranks' finalisation diverge
         v["slepc4py"] = slepc4py.__version__

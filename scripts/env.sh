@@ -60,6 +60,23 @@ export OMPI_MCA_mpi_yield_when_idle="${OMPI_MCA_mpi_yield_when_idle:-1}"
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
 
+# The same arithmetic on every x86-64 machine (docs/conventions.md "The same numbers on every
+# machine"): OpenBLAS (under CHOLMOD and numpy) and numpy pick their kernels by the CPU, and
+# another kernel sums in another order, so the same scene differed at round-off between an
+# AVX-512 machine and an AMD one -- which a chain near its turn grows to 1e-3.  Pin OpenBLAS
+# to its AVX2 "Haswell" kernels (what it picks for AMD Zen, too) and, where the CPU has
+# AVX-512, switch off numpy's AVX-512 paths (only the features the CPU has: naming one it
+# lacks makes numpy warn at import).
+if [ "$(uname -m 2>/dev/null)" = x86_64 ] && grep -qw avx2 /proc/cpuinfo 2>/dev/null; then
+    export OPENBLAS_CORETYPE="${OPENBLAS_CORETYPE:-Haswell}"
+    if [ -z "${NPY_DISABLE_CPU_FEATURES+x}" ] && grep -qw avx512f /proc/cpuinfo; then
+        _parflow_npy_off=$(/usr/bin/python3 -c 'from numpy.core._multiarray_umath import __cpu_features__ as f, __cpu_dispatch__ as d
+print(" ".join(k for k in d if k.startswith("AVX512") and f.get(k)))' 2>/dev/null)
+        if [ -n "${_parflow_npy_off}" ]; then export NPY_DISABLE_CPU_FEATURES="${_parflow_npy_off}"; fi
+        unset _parflow_npy_off
+    fi
+fi
+
 # Ignore ~/.local/lib/python3.X: a pip-installed numpy 2 there would shadow Debian's
 # numpy 1.24, which petsc4py/h5py/scipy are built against.
 export PYTHONNOUSERSITE=1

@@ -9,6 +9,11 @@ column by column and array by array.
 Regenerate (only when a change of behaviour is intended, and say so in the commit):
 
     . scripts/env.sh && .venv/bin/python tests/reference_runs.py
+
+Each reference records the CPU kernels it was made with (:func:`kernels`, e.g. ``openblas
+Haswell, numpy AVX2``): another OpenBLAS core sums in another order, and the runs differ at
+round-off (which the chain grows to 1e-3), so the comparison first checks that the kernels
+are the same (scripts/env.sh pins them on x86-64).
 """
 from __future__ import annotations
 
@@ -154,6 +159,16 @@ def load_reference(name: str) -> dict:
         return {k: z[k] for k in z.files}
 
 
+KERNELS_KEY = "_kernels"     # the CPU kernels a reference was recorded with (not a run entry)
+
+
+def kernels() -> str:
+    """The kernels of this process's arithmetic (``parflow.provenance.kernels``): a reference
+    holds bit for bit only where the same ones run (scripts/env.sh pins them)."""
+    from parflow.provenance import kernels as k
+    return k()
+
+
 def main() -> int:
     import tempfile
 
@@ -165,6 +180,7 @@ def main() -> int:
             status = run(name, path)
             with h5py.File(path, "r") as f:
                 flat = flatten(f)
+            flat[KERNELS_KEY] = np.array(kernels())
             np.savez_compressed(reference_path(name), **flat)
             print(f"{name}: {status}, {len(flat)} entries -> {os.path.relpath(reference_path(name))}")
     return 0

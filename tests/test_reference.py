@@ -27,6 +27,10 @@ def test_reference_scene_unchanged(tmp_path, name):
     with h5py.File(path, "r") as f:
         new = ref.flatten(f)
     old = ref.load_reference(name)
+    made_with = str(old.pop(ref.KERNELS_KEY, "unrecorded"))
+    assert made_with == ref.kernels(), (
+        f"{name}: reference made with kernels '{made_with}', this run uses '{ref.kernels()}': "
+        "the arithmetic differs at round-off; run under scripts/env.sh (it pins them)")
     diffs = ref.differences(old, new)
     changed = {k: v for k, v in diffs.items() if v > 0}
     for k, v in sorted(changed.items()):
