@@ -1,6 +1,8 @@
 """Provenance of a run file: the git commit of the code and the versions of what it ran on."""
 from __future__ import annotations
 
+import ctypes
+import importlib
 import os
 import subprocess
 import sys
@@ -30,18 +32,20 @@ def kernels() -> str:
     """The CPU kernels the arithmetic ran on: OpenBLAS's core (its dgemm sums in a core's own
     order) and numpy's SIMD extensions in use (scripts/env.sh pins both; docs/conventions.md
     "The same numbers on every machine"), e.g. ``openblas Haswell, numpy AVX2``."""
-    import ctypes
     try:
         lib = ctypes.CDLL("libopenblas.so.0")
         lib.openblas_get_corename.restype = ctypes.c_char_p
         core = lib.openblas_get_corename().decode()
     except (OSError, AttributeError):
         core = "none"
-    try:
-        from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__
-        simd = [k for k in __cpu_dispatch__ if __cpu_features__.get(k)]
-    except ImportError:
-        simd = []
+    simd = []
+    for where in ("numpy._core._multiarray_umath", "numpy.core._multiarray_umath"):
+        try:      # numpy-private (numpy._core from numpy 2 on)
+            m = importlib.import_module(where)
+            simd = [k for k in m.__cpu_dispatch__ if m.__cpu_features__.get(k)]
+            break
+        except (ImportError, AttributeError):
+            continue
     top = next((k for k in reversed(simd) if k.startswith("AVX512")), None) or \
         ("AVX2" if "AVX2" in simd else (simd[-1] if simd else "baseline"))
     return f"openblas {core}, numpy {top}"

@@ -71,7 +71,7 @@ if [ "$(uname -m 2>/dev/null)" = x86_64 ] && grep -qw avx2 /proc/cpuinfo 2>/dev/
     export OPENBLAS_CORETYPE="${OPENBLAS_CORETYPE:-Haswell}"
     if [ -z "${NPY_DISABLE_CPU_FEATURES+x}" ] && grep -qw avx512f /proc/cpuinfo; then
         _parflow_npy_off=$(/usr/bin/python3 -c 'from numpy.core._multiarray_umath import __cpu_features__ as f, __cpu_dispatch__ as d
-print(" ".join(k for k in d if k.startswith("AVX512") and f.get(k)))' 2>/dev/null)
+print(" ".join(k for k in d if k.startswith("AVX512") and f.get(k)))' 2>/dev/null || true)
         if [ -n "${_parflow_npy_off}" ]; then export NPY_DISABLE_CPU_FEATURES="${_parflow_npy_off}"; fi
         unset _parflow_npy_off
     fi

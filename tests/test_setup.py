@@ -53,6 +53,35 @@ def test_env_sh_picks_the_newest_petsc_and_its_slepc(tmp_path):
     assert f"SLEPC_DIR={slepc}/slepc3.18/x86_64-linux-gnu-real" in res.stdout, res.stdout
 
 
+def _x86_avx2() -> bool:
+    try:
+        return os.uname().machine == "x86_64" and " avx2" in open("/proc/cpuinfo").read()
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _x86_avx2(), reason="the kernel pin is for x86-64 with AVX2")
+@pytest.mark.parametrize("shell", ["bash -euo pipefail", "sh -eu"])
+def test_env_sh_pins_the_blas_kernels(tmp_path, shell):
+    """docs/conventions.md "The same numbers on every machine": OpenBLAS on its Haswell
+    kernels whatever the CPU (and numpy off AVX-512), a value already set left alone, and the
+    pin reaching the library (parflow.provenance.kernels asks OpenBLAS)."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES")}
+    probe = shell + """ -c '. scripts/env.sh; echo "CORE=$OPENBLAS_CORETYPE"; \
+        .venv/bin/python -c "from parflow.provenance import kernels; print(kernels())"'"""
+    res = subprocess.run(probe, shell=True, cwd=REPO, env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "CORE=Haswell" in res.stdout and "openblas Haswell, numpy AVX2" in res.stdout, \
+        res.stdout + res.stderr
+    assert "AVX512" not in res.stdout and "cannot disable" not in res.stderr, res.stderr
+    res = subprocess.run(shell + """ -c '. scripts/env.sh; echo "CORE=$OPENBLAS_CORETYPE"'""",
+                         shell=True, cwd=REPO, env=dict(env, OPENBLAS_CORETYPE="Sandybridge"),
+                         capture_output=True, text=True, timeout=30)
+    assert "CORE=Sandybridge" in res.stdout, res.stdout + res.stderr
+
+
 def test_setup_reaches_apt_on_a_machine_without_petsc(tmp_path):
     """setup.sh under `set -euo pipefail` gets as far as the apt step (dry run: nothing is
     installed) when none of the system packages is there."""
