@@ -31,7 +31,7 @@ strain = 0.05
 {scene}
 [output]
 path = "{path}"
-checkpoint_every = 10
+checkpoint_every = 100
 """
 # a suspension scene's one leg, open for one more leg key
 SUSPENSION = """

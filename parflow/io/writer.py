@@ -381,19 +381,21 @@ def _apply(f, batch: dict) -> None:
     n0, n_new = batch["n0"], batch["n_new"]
     if batch["checkpoint"] is not None and "checkpoint" in f:
         del f["checkpoint"]            # first: the new one reuses its space
+    cols = {name: ts[name] for name in ts}     # (one lookup each: h5py's are not free)
     for name, arr in batch["rows"].items():
-        if name not in ts:
+        d = cols.get(name)
+        if d is None:
             fill = np.full(n0, np.nan) if arr.dtype.kind == "f" else np.zeros(n0, dtype=arr.dtype)
-            ts.create_dataset(name, data=fill, maxshape=(None,), chunks=(CHUNK_ROWS,))
-        d = ts[name]
+            d = cols[name] = ts.create_dataset(name, data=fill, maxshape=(None,),
+                                               chunks=(CHUNK_ROWS,))
         d.resize((n0 + n_new,))
         d[n0:] = arr
-    for name in ts:                    # quantities absent from this batch
-        if ts[name].shape[0] < n0 + n_new:
-            old = ts[name].shape[0]
-            ts[name].resize((n0 + n_new,))
-            if ts[name].dtype.kind == "f":
-                ts[name][old:] = np.nan
+    for name, d in cols.items():       # quantities absent from this batch
+        if name not in batch["rows"] and d.shape[0] < n0 + n_new:
+            old = d.shape[0]
+            d.resize((n0 + n_new,))
+            if d.dtype.kind == "f":
+                d[old:] = np.nan
     for name, arrays, attrs in batch["groups"]:
         _write_group(f, name, arrays, attrs)
     if batch["checkpoint"] is not None:
