@@ -11,6 +11,9 @@ solves, factorisations, and the largest difference of V = S^T f from the recorde
     python benchmarks/bench_lcp.py          # makes out/bench_lcp_phi0.840.h5 first (300 steps)
     python benchmarks/bench_lcp.py --strategies RUN [RUN ...] --steps 60
         # block pivoting / projected Newton / Lawson-Hanson on the same LCPs of each run
+    python benchmarks/bench_lcp.py --factors RUN --steps 40 [--repeat 3]
+        # the factorisation of N_AA: CHOLMOD auto / simplicial / supernodal, SuperLU
+        # (interleaved, --repeat passes each); writes docs/benchmarks/lcp_factors.json
 """
 from __future__ import annotations
 
@@ -132,6 +135,50 @@ def strategies(runs: list, steps: int) -> int:
     return 0
 
 
+# the factorisations compared by --factors: (name, SelfFactor kind, CHOLMOD method or None)
+FACTORS = (("cholmod-auto", "cholmod", "AUTO"), ("cholmod-simplicial", "cholmod", "SIMPLICIAL"),
+           ("cholmod-supernodal", "cholmod", "SUPERNODAL"), ("superlu", "superlu", None))
+
+
+def factors(run: str, steps: int, repeat: int) -> int:
+    """The default LCP solve on the same recorded LCPs with each factorisation of N_AA,
+    the passes interleaved (a load that drifts hits each alike); wall = the median pass."""
+    from petsc4py import PETSc
+
+    import parflow.dynamics.lcp as co
+    if not os.path.exists(run):
+        print(f"bench_lcp: no such run file {run!r}", file=sys.stderr)
+        return 2
+    instances, meta = record(run, steps)
+    opts = PETSc.Options()
+    key = "contact_mat_cholmod_factor"
+    before = opts.getString(key) if opts.hasName(key) else None
+    passes = {name: [] for name, _, _ in FACTORS}
+    try:
+        for _ in range(repeat):
+            for name, kind, method in FACTORS:
+                if method is not None:
+                    opts.setValue(key, method)
+                passes[name].append(measure(instances, factor=kind))
+    finally:
+        if before is None:
+            opts.delValue(key)
+        else:
+            opts.setValue(key, before)
+    rows = []
+    for name, kind, method in FACTORS:
+        p = passes[name]
+        walls = [r["wall_s"] for r in p]
+        row = dict(p[int(np.argsort(walls)[len(walls) // 2])], factor=name,
+                   wall_s_passes=walls)
+        rows.append(row)
+        print(meta["file"], name, row)
+    data = dict(meta, rows=rows, repeat=repeat, measured=time.strftime("%Y-%m-%d %H:%M:%S"),
+                loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp_factors", data))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", nargs="?", default=DEFAULT_RUN,
@@ -144,7 +191,13 @@ def main(argv=None) -> int:
                     help="compare the pivoting strategies (STRATEGIES: block pivoting, projected "
                          "Newton, Lawson-Hanson) on the LCPs of --steps steps from each of these "
                          "run files instead; writes docs/benchmarks/lcp_strategies.json")
+    ap.add_argument("--factors", metavar="RUN",
+                    help="compare the factorisations of N_AA (FACTORS) on the LCPs of --steps "
+                         "steps from RUN; writes docs/benchmarks/lcp_factors.json")
+    ap.add_argument("--repeat", type=int, default=3, help="passes of each factorisation (--factors)")
     a = ap.parse_args(argv)
+    if a.factors:
+        return factors(a.factors, a.steps, a.repeat)
     if a.strategies:
         return strategies(a.strategies, a.steps)
     if not os.path.exists(a.run):

@@ -204,6 +204,27 @@ def lcp_strategies_section(d):
     return out
 
 
+def lcp_factors_section(d):
+    out = ["## Contact LCP: the factorisation of N_AA (`bench_lcp.py --factors`)", "",
+           f"The {d['rows'][0]['lcps']} LCPs of {d['steps']} suspension steps from the checkpoint of "
+           f"`{os.path.basename(d['file'])}` (N = {d['N']}, φ = {d['phi']:.3f}, γ = "
+           f"{d['gamma_from']:.4f} → {d['gamma_to']:.4f}, σ = {d['sigma_end']:.0f} at the end), each "
+           "solved again with the default strategy and each factorisation of the active N_AA "
+           "(~7 850 rows, ~57 000 nonzeros), one process, the passes of the factorisations "
+           f"interleaved, {d['repeat']} each (the median pass shown, every pass's wall listed).  "
+           "`cholmod-auto` is CHOLMOD's own choice (supernodal on these matrices: bit-identical "
+           "to `cholmod-supernodal`), the default until 2026-12-03; `cholmod-simplicial` (LDLᵀ, "
+           "the default since) is `-contact_mat_cholmod_factor simplicial`.", "",
+           "| factorisation | ms per LCP | solves per LCP | factorisations per LCP | bordered per LCP | failures | max \\|ΔV\\|/\\|V\\| | wall of each pass (s) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        out.append(f"| {r['factor']} | {r['ms_per_lcp']:.0f} | {r['solves_per_lcp']:.1f} | "
+                   f"{r['factorisations_per_lcp']:.2f} | {r['bordered_per_lcp']:.1f} | {r['failures']} | "
+                   f"{r['max_rel_dV']:.1e} | {', '.join(f'{w:.2f}' for w in r['wall_s_passes'])} |")
+    out += _measured_at(d)
+    return out
+
+
 def network_control_section(d):
     ref = d["reference"]
     out = ["## Step-size control on a network (`bench_network_control.py`)", "",
@@ -574,6 +595,7 @@ def main():
                      ("packing", packing_section), ("correlation", correlation_section),
                      ("suspension", suspension_section), ("lcp", lcp_section),
                      ("lcp_strategies", lcp_strategies_section),
+                     ("lcp_factors", lcp_factors_section),
                      ("network_control_N4096", network_control_section),
                      ("network_shear", network_shear_section), ("flush", flush_section),
                      ("stiff", stiff_section), ("departure", departure_section),
