@@ -145,7 +145,6 @@ def factors(run: str, steps: int, repeat: int) -> int:
     the passes interleaved (a load that drifts hits each alike); wall = the median pass."""
     from petsc4py import PETSc
 
-    import parflow.dynamics.lcp as co
     if not os.path.exists(run):
         print(f"bench_lcp: no such run file {run!r}", file=sys.stderr)
         return 2
