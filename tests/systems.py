@@ -53,3 +53,25 @@ def run_scene(scene, comm=None, **kw):
     comm = comm or PETSc.COMM_WORLD
     setup_logging(comm, quiet=True)
     return Run(scene, comm, scene["output"]["path"], quiet=True, **kw).execute()
+
+
+# the tiny suspension scene of the ensemble tests (N = 64, 0.2 strain, analyses every 0.05
+# over the last 0.1): format with phi and an [ensemble] table (or "")
+SUSPENSION_ENSEMBLE_SCENE = """
+title = "suspension ensemble test"
+seed = 3
+[model]
+name = "suspension"
+N = 64
+phi = {phi}
+{ensemble}
+[[protocol.leg]]
+direction = "forward"
+strain = 0.2
+[observables]
+analysis_from_strain = 0.1
+analysis_strain = 0.05
+omega_min_every = 0
+[output]
+path = "unused.h5"
+"""

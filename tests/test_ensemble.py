@@ -14,6 +14,7 @@ import pytest
 from parflow.ensemble import SEED_RULE, sample_seed, sample_text
 from parflow.errors import InputError
 from parflow.scene import load_scene
+from systems import SUSPENSION_ENSEMBLE_SCENE
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from reference_runs import flatten  # noqa: E402  (VOLATILE entries left out)
@@ -310,23 +311,7 @@ def test_summary_against_numpy(serial):
             f.close()
 
 
-SUSPENSION_SCENE = """
-title = "suspension ensemble test"
-seed = 3
-[model]
-name = "suspension"
-N = 64
-phi = 0.80
-[[protocol.leg]]
-direction = "forward"
-strain = 0.2
-[observables]
-analysis_from_strain = 0.1
-analysis_strain = 0.05
-omega_min_every = 0
-[output]
-path = "unused.h5"
-"""
+SUSPENSION_SCENE = SUSPENSION_ENSEMBLE_SCENE.format(phi="0.80", ensemble="")
 
 
 def _window_instants_h5(path, from_strain):

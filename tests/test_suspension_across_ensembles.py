@@ -13,28 +13,11 @@ import numpy as np
 import pytest
 
 from parflow.post import suspension_across_ensembles as sae
+from systems import SUSPENSION_ENSEMBLE_SCENE
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-SCENE = """
-title = "suspension ensemble test"
-seed = 3
-[model]
-name = "suspension"
-N = 64
-phi = {phi}
-[ensemble]
-samples = 3
-[[protocol.leg]]
-direction = "forward"
-strain = 0.2
-[observables]
-analysis_from_strain = 0.1
-analysis_strain = 0.05
-omega_min_every = 0
-[output]
-path = "unused.h5"
-"""
+SCENE = SUSPENSION_ENSEMBLE_SCENE.replace("{ensemble}", "[ensemble]\nsamples = 3")
 
 
 def table_of(phi, values: dict, N=4096) -> list[dict]:
