@@ -352,7 +352,8 @@ def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str
     when no ensemble is found, for a negative --boot, or the ValueError of a bad input."""
     ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("folders", nargs="+", metavar="FOLDER",
-                    help="ensemble folders, or folders holding them")
+                    help="ensemble folders, or folders holding them" + (
+                        " (and sample tables: see --export)" if export is not None else ""))
     ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
     ap.add_argument("--boot", type=int, default=N_BOOT, help=f"bootstrap resamples ({N_BOOT})")
     if export is not None:
