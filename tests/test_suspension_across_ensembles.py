@@ -3,6 +3,7 @@ fit sigma = A (phi_c - phi)^-beta against a brute-force numpy scan and polyfit, 
 of phi_c and beta from synthetic ensembles, the pairing of the bootstrap (x and y of a fit
 redrawn together), and the per-phi numbers against numpy on the sample files of two tiny
 suspension ensembles."""
+import json
 import math
 import os
 import subprocess
@@ -248,7 +249,22 @@ def test_sample_tables_give_the_analysis_of_the_run_files(tiny, tmp_path, capsys
     capsys.readouterr()
     assert sae.main([str(tiny / "phi0.78"), str(tables / names[0])]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "pass one of them" in err[0]
+    assert len(err) == 1 and "the same sample (seed" in err[0]
+    # more samples of a phi (the same scene with other seeds) are pooled; another scene is not
+    doc = json.loads((tables / names[0]).read_text())
+    for x in doc["samples"]:
+        x["seed"] += 1000
+    (tmp_path / "more.json").write_text(json.dumps(doc))
+    pooled = sae.analyse([str(tiny / "phi0.78"), str(tmp_path / "more.json")], n_boot=0)
+    t = pooled["table"][0]
+    assert t["n_samples"] == 6 and t["sigma"]["n"] == 6
+    one = direct["table"][0]["sigma"]["values"]
+    assert t["sigma"]["values"] == pytest.approx(one + one, rel=1e-12)
+    doc["provenance"]["scene"] = doc["provenance"]["scene"].replace("strain = 0.2", "strain = 0.3")
+    (tmp_path / "other.json").write_text(json.dumps(doc))
+    assert sae.main([str(tiny / "phi0.78"), str(tmp_path / "other.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not the same scene" in err[0]
     bad = tmp_path / "bad.json"
     bad.write_text('{"kind": "something else"}')
     assert sae.main([str(bad)]) == 2

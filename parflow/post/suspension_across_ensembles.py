@@ -51,7 +51,9 @@ ensemble (everything above uses, the instants' points included) as one small JSO
 run file and the scene of sample 0), so that ensembles run at different times, on machines
 whose run files are gone, enter one analysis: docs/data/suspension_ensembles/ holds those of
 the ensembles docs/suspensions.md quotes.  An analysis reads run folders and tables alike;
-two sources with the same (N, phi) are refused (pass one).
+sources of the same (N, phi) are pooled into one ensemble when they are the same scene but
+for its seed and share no sample seed (:func:`pool`: more samples of a phi, run at another
+time), and refused otherwise.
 
 ``python -m parflow.post.suspension_across_ensembles PATH... [--json OUT] [--export DIR]``
 prints the table and the fits; a PATH is an ensemble folder, a sample table, or a folder
@@ -65,6 +67,7 @@ import json
 import math
 import os
 import sys
+import tomllib
 
 import numpy as np
 
@@ -383,20 +386,58 @@ def across(table: list[dict], n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> di
     return out
 
 
+def _protocol(scene_text: str):
+    """What two ensembles must share to be pooled: the scene without its seed, title,
+    [ensemble] and [output] tables (None if it does not parse)."""
+    try:
+        d = tomllib.loads(scene_text)
+    except (tomllib.TOMLDecodeError, TypeError):
+        return None
+    for k in ("seed", "title", "ensemble", "output"):
+        d.pop(k, None)
+    return d
+
+
+def pool(group: list[dict]) -> dict:
+    """One ensemble from several of the same (N, phi): their samples together, if no sample
+    seed occurs twice (the same realisation counted twice) and the scenes agree but for the
+    seed (e.g. the same scene run again with another ``seed``: docs/ensembles.md); else
+    ValueError naming the two."""
+    first = group[0]
+    seeds = {x["seed"]: first["folder"] for x in first["samples"]}
+    proto = _protocol(first.get("provenance", {}).get("scene", ""))
+    for e in group[1:]:
+        again = [x["seed"] for x in e["samples"] if x["seed"] in seeds]
+        if again:
+            raise ValueError(f"{seeds[again[0]]} and {e['folder']} hold the same sample (seed "
+                             f"{again[0]}): pass one of them")
+        other = _protocol(e.get("provenance", {}).get("scene", ""))
+        if proto is None or other != proto:
+            raise ValueError(f"{first['folder']} and {e['folder']} are both N = "
+                             f"{int(first['samples'][0]['N'])}, phi = "
+                             f"{float(first['samples'][0]['phi']):g} but not the same scene "
+                             f"(apart from its seed): pass one of them")
+        seeds.update({x["seed"]: e["folder"] for x in e["samples"]})
+    if len(group) == 1:
+        return first
+    return dict(folder=" + ".join(e["folder"] for e in group),
+                samples=[x for e in group for x in e["samples"]],
+                provenance=dict(scene=first["provenance"]["scene"],
+                                samples=[p for e in group
+                                         for p in e.get("provenance", {}).get("samples", [])]))
+
+
 def read_sources(paths) -> list[dict]:
-    """The ensembles under ``paths`` (:func:`find_sources`) with a finished sample; ValueError
-    for two of the same (N, phi)."""
+    """The ensembles under ``paths`` (:func:`find_sources`) with a finished sample, those of
+    the same (N, phi) pooled (:func:`pool`)."""
     folders, tables = find_sources(paths)
     ens = [read_ensemble(f) for f in folders] + [load_samples(t) for t in tables]
-    ens = [e for e in ens if e["samples"]]
-    seen = {}
+    groups: dict = {}
     for e in ens:
-        key = (int(e["samples"][0]["N"]), round(float(e["samples"][0]["phi"]), 6))
-        if key in seen:
-            raise ValueError(f"{seen[key]} and {e['folder']} are both N = {key[0]}, phi = "
-                             f"{key[1]:g}: pass one of them")
-        seen[key] = e["folder"]
-    return ens
+        if e["samples"]:
+            key = (int(e["samples"][0]["N"]), round(float(e["samples"][0]["phi"]), 6))
+            groups.setdefault(key, []).append(e)
+    return [pool(g) for g in groups.values()]
 
 
 def analyse(paths, n_boot: int = N_BOOT) -> dict:
