@@ -29,9 +29,12 @@ standard deviation, ddof = 1; NaN for n < 2) and the count n.
 """
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import re
+import sys
+import tomllib
 
 import numpy as np
 
@@ -379,11 +382,12 @@ def suspension_profiles(runs) -> dict:
     return out
 
 
-def _chain_ensemble_fit(curve, runs) -> dict:
+def chain_ensemble_fit(curve, dgamma_typical) -> dict:
     """The <V^2> exponent fitted to the averaged forward curve (window: the last decades
-    of gamma_c - gamma above 10 typical |dgamma|, as for one run), jackknife error."""
+    of gamma_c - gamma above 10 typical |dgamma| -- the largest of the samples' -- as for one
+    run), jackknife error."""
     grid, vals = curve["x"], curve["values"]
-    dg = [chain_fits(r).get("dgamma_typical", 0.0) for r in runs]
+    dg = [float(d) for d in dgamma_typical if np.isfinite(d)]
     lo, hi = fit_window(grid, max(dg) if dg else 0.0)
 
     def est(keep):
@@ -456,24 +460,56 @@ def summarise(folder: str) -> dict:
             curves.update(suspension_profiles(rs))
     ens = {}
     if "V2_forward" in curves:
-        ens.update(_chain_ensemble_fit(curves["V2_forward"], rs))
+        ens.update(chain_ensemble_fit(curves["V2_forward"],
+                                      [chain_fits(r).get("dgamma_typical", 0.0) for r in rs]))
     if rs:
         ens["jamming_rate"] = jamming_rate([r.attrs.get("status") for r in rs],
                                            scalars["final_strain"])
     return dict(model=model, index=np.array(index, dtype=np.int64), status=status,
                 seed=np.array(seeds, dtype=np.int64), used=used, scalars=scalars, fits=fits,
-                curves=curves, ensemble_fits=ens)
+                curves=curves, ensemble_fits=ens, scene=index_scene(folder))
+
+
+def scene_protocol(scene_text: str):
+    """What two ensembles must share to be pooled: the scene (TOML) without its seed, title,
+    [ensemble] and [output] tables; None if it does not parse (then nothing pools with it)."""
+    try:
+        d = tomllib.loads(scene_text)
+    except (tomllib.TOMLDecodeError, TypeError):
+        return None
+    for k in ("seed", "title", "ensemble", "output"):
+        d.pop(k, None)
+    return d
+
+
+def index_scene(folder: str) -> str:
+    """The scene text of the ensemble index ``FOLDER/ensemble.h5`` ("" if unreadable)."""
+    try:
+        with open_hdf5(os.path.join(folder, "ensemble.h5")) as f:
+            v = f.attrs.get("scene", "")
+    except (OSError, ValueError):
+        return ""
+    return v.decode() if isinstance(v, bytes) else str(v)
 
 
 def write_summary(folder: str) -> str:
     """Compute the statistics and write ``FOLDER/summary.h5`` (whole or not at all)."""
-    s = summarise(folder)
     path = os.path.join(folder, "summary.h5")
+    write_summary_file(path, summarise(folder))
+    return path
+
+
+def write_summary_file(path: str, s: dict) -> None:
+    """Write the statistics ``s`` (:func:`summarise`'s form) to ``path``, whole or not at
+    all; ``s["sources"]`` (a pooled summary's inputs) recorded if present."""
     with atomic_h5(path) as f:
         f.attrs["format"] = SUMMARY_FORMAT
         f.attrs["model"] = s["model"]
         f.attrs["n_samples"] = len(s["index"])
         f.attrs["n_used"] = len(s["used"])
+        f.attrs["scene"] = s.get("scene", "")
+        if s.get("sources"):
+            f.attrs["pooled_from"] = "\n".join(s["sources"])
         g = f.create_group("samples")
         g["sample"] = s["index"]
         g["seed"] = s["seed"]
@@ -497,7 +533,6 @@ def write_summary(folder: str) -> str:
             q = sec.create_group(name)
             for a, v in d.items():
                 q.attrs[a] = v
-    return path
 
 
 def read_summary(path: str) -> dict:
@@ -512,3 +547,24 @@ def read_summary(path: str) -> dict:
         return dict(attrs=dict(f.attrs), samples={k: v[()] for k, v in f["samples"].items()},
                     scalars=grp("scalars"), fits=grp("fits"), curves=grp("curves"),
                     ensemble_fits={k: dict(f["ensemble_fits"][k].attrs) for k in f["ensemble_fits"]})
+
+
+def main(argv=None) -> int:
+    """``python -m parflow.post.ensemble FOLDER...``: compute each ensemble folder's
+    summary.h5 again from its sample files (e.g. after parflow's statistics changed)."""
+    ap = argparse.ArgumentParser(prog="python -m parflow.post.ensemble",
+                                 description="write an ensemble folder's summary.h5 again")
+    ap.add_argument("folders", nargs="+", metavar="FOLDER")
+    args = ap.parse_args(argv)
+    for folder in args.folders:
+        if not os.path.isfile(os.path.join(folder, "ensemble.h5")):
+            print(f"parflow.post.ensemble: {folder}: not an ensemble folder (no ensemble.h5)",
+                  file=sys.stderr)
+            return 2
+    for folder in args.folders:
+        print(write_summary(folder))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -67,11 +67,10 @@ import json
 import math
 import os
 import sys
-import tomllib
 
 import numpy as np
 
-from .ensemble import finished_samples, jackknife, jamming_rate, mean_sem
+from .ensemble import finished_samples, jackknife, jamming_rate, mean_sem, scene_protocol
 from .fits import fit_power_law_err
 from .network_across_ensembles import _jsonable, is_ensemble, run_cli
 from .suspension import suspension_fits
@@ -386,18 +385,6 @@ def across(table: list[dict], n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> di
     return out
 
 
-def _protocol(scene_text: str):
-    """What two ensembles must share to be pooled: the scene without its seed, title,
-    [ensemble] and [output] tables (None if it does not parse)."""
-    try:
-        d = tomllib.loads(scene_text)
-    except (tomllib.TOMLDecodeError, TypeError):
-        return None
-    for k in ("seed", "title", "ensemble", "output"):
-        d.pop(k, None)
-    return d
-
-
 def pool(group: list[dict]) -> dict:
     """One ensemble from several of the same (N, phi): their samples together, if no sample
     seed occurs twice (the same realisation counted twice) and the scenes agree but for the
@@ -405,13 +392,13 @@ def pool(group: list[dict]) -> dict:
     ValueError naming the two."""
     first = group[0]
     seeds = {x["seed"]: first["folder"] for x in first["samples"]}
-    proto = _protocol(first.get("provenance", {}).get("scene", ""))
+    proto = scene_protocol(first.get("provenance", {}).get("scene", ""))
     for e in group[1:]:
         again = [x["seed"] for x in e["samples"] if x["seed"] in seeds]
         if again:
             raise ValueError(f"{seeds[again[0]]} and {e['folder']} hold the same sample (seed "
                              f"{again[0]}): pass one of them")
-        other = _protocol(e.get("provenance", {}).get("scene", ""))
+        other = scene_protocol(e.get("provenance", {}).get("scene", ""))
         if proto is None or other != proto:
             raise ValueError(f"{first['folder']} and {e['folder']} are both N = "
                              f"{int(first['samples'][0]['N'])}, phi = "
