@@ -13,10 +13,11 @@ their scene are refused), and no sample seed twice (the same realisation counted
   the positions of those that enter the statistics);
 * ``scalars`` and ``fits``: the per-sample values concatenated (NaN for a sample whose
   summary lacks the name), then mean, standard error and count as in any summary;
-* ``curves``: each input's per-sample rows interpolated onto one grid spanning all of them
-  (log-spaced where the curve's x scale is log; log-log interpolation where both scales are,
-  as the summaries build them; :data:`post.ensemble.GRID_POINTS` points), NaN outside a
-  sample's own range;
+* ``curves``: each input's per-sample rows; where the inputs' grids differ, interpolated
+  onto one grid spanning all of them (log-spaced where the curve's x scale is log; log-log
+  interpolation where both scales are, as the summaries build them;
+  :data:`post.ensemble.GRID_POINTS` points), NaN outside a sample's own range; where every
+  input has the same grid (the same bins), the rows as they are;
 * ``ensemble_fits``: recomputed on the pooled data: the chain's <V^2> exponent of the
   averaged forward curve (``post.ensemble.chain_ensemble_fit``, the fit window from the
   samples' typical steps) with its jackknife error, and the jamming rate.
@@ -59,6 +60,14 @@ def pool_curves(curves: list[dict | None], n_used: list[int]) -> dict | None:
     have = [c for c in curves if c is not None and np.size(c["x"]) >= 2]
     if not have:
         return None
+    if all(c is not None and np.array_equal(c["x"], have[0]["x"]) for c in curves):
+        # one grid already (the same bins, e.g. a suspension's P(f), or one input): rows as
+        # they are, nothing interpolated
+        first = have[0]
+        return dict(x=np.asarray(first["x"], float),
+                    values=np.vstack([np.atleast_2d(np.asarray(c["values"], float))
+                                      for c in curves]),
+                    **{a: str(first.get(a, "")) for a in ("xlabel", "ylabel", "xscale", "yscale")})
     grid = _grid(have)
     log = have[0].get("xscale") == "log" and have[0].get("yscale") == "log"
     rows = []
