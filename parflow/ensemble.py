@@ -61,6 +61,7 @@ from .checkpoint import check_checkpoint
 from .errors import InputError, Terminated, collective
 from .io import RunFile, WriteError, atomic_h5, check_output_path
 from .post.ensemble import write_summary
+from .post.suspension_across_ensembles import export_samples, read_ensemble
 from .protocol import hms
 from .run import Run
 from .scene import EnsembleOptions, apply_settings, load_scene  # noqa: F401  ([ensemble])
@@ -69,6 +70,7 @@ from .state import STOPS
 log = logging.getLogger("parflow")
 
 INDEX_FORMAT = "parflow-ensemble-1"
+SAMPLE_TABLE = "samples.json"       # a suspension ensemble's sample table (post.suspension_across_ensembles)
 SEED_RULE = ("seed_k = SeedSequence(seed, spawn_key=(k,)).generate_state(1, uint64)[0] >> 1 "
              "(numpy)")
 DONE = ("complete", "jammed", "budget")          # a finished sample
@@ -250,7 +252,7 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
                                  f"--restart {folder}, pass --overwrite to replace it, or "
                                  f"--output another folder")
             for name in os.listdir(folder):
-                if re.fullmatch(r"sample_\d+\.h5(\.tmp)?|ensemble\.h5|summary\.h5", name):
+                if re.fullmatch(r"sample_\d+\.h5(\.tmp)?|ensemble\.h5|summary\.h5|samples\.json", name):
                     os.remove(os.path.join(folder, name))
             for d in (_records_dir(folder),):
                 for name in os.listdir(d) if os.path.isdir(d) else []:
@@ -489,6 +491,15 @@ def _finish(folder: str, base: dict, samples: int, rps: int, stop_code: int) -> 
         print(f"parflow.shear: ensemble: summary not written ({type(exc).__name__}: {exc}); "
               f"the sample files are in {folder}", file=sys.stderr)
         code = 1
+    if base["scene"]["model"]["name"] == "suspension":
+        try:              # the suspension's sample table (docs/ensembles.md "Sample tables")
+            table = os.path.join(folder, SAMPLE_TABLE)
+            export_samples(read_ensemble(folder), table)
+            log.info("ensemble: sample table %s", table)
+        except Exception as exc:
+            print(f"parflow.shear: ensemble: sample table not written ({type(exc).__name__}: "
+                  f"{exc}); the sample files are in {folder}", file=sys.stderr)
+            code = 1
     failed = sorted(k for k, r in recs.items() if r["status"] == "failed")
     if failed:
         first = recs[failed[0]]

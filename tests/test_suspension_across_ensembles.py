@@ -237,6 +237,10 @@ def test_sample_tables_give_the_analysis_of_the_run_files(tiny, tmp_path, capsys
     direct = sae.analyse([str(tiny)], n_boot=30)
     again = sae.analyse([str(tables)], n_boot=30)
     assert _strip_folders(_jsonable(again)) == _strip_folders(_jsonable(direct))
+    # the ensemble wrote its own table at its end: the same numbers
+    for phi, name in zip(("0.78", "0.80"), names):
+        own = json.loads((tiny / f"phi{phi}" / "samples.json").read_text())
+        assert own["samples"] == json.loads((tables / name).read_text())["samples"]
     e = sae.load_samples(str(tables / names[0]))
     assert [x["sample"] for x in e["samples"]] == [0, 1, 2]
     prov = e["provenance"]
