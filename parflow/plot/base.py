@@ -18,8 +18,10 @@ order of its runs and the extra words of its titles are given once per model by
 """
 from __future__ import annotations
 
+import argparse
 import math
 import os
+import sys
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -178,3 +180,35 @@ def instant_colors(inst, key="V2", cmap="viridis"):
     sm = ScalarMappable(norm=norm, cmap=cmap)
     cols = [sm.to_rgba(x) if np.isfinite(x) and x > 0 else (0.5, 0.5, 0.5, 1) for x in v]
     return cols, sm
+
+
+def across_ensembles_cli(argv, prog: str, description: str, analyse, format_table,
+                         empty: str, figures) -> int:
+    """The command line of an across-ensembles figure module: PATH... [--out DIR] [--format];
+    ``figures(res)`` gives (name, Figure) pairs for ``res = analyse(paths)``; the table on
+    stderr.  Exit 2 with one line: ``empty`` when nothing is found, or the ValueError of a
+    bad input.  --out defaults to the first PATH (its folder, for a file)."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
+    ap.add_argument("folders", nargs="+", metavar="PATH",
+                    help="ensemble folders (or what the analysis reads), or folders holding them")
+    ap.add_argument("--out", default=None, help="output folder (default: the first PATH)")
+    ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
+    args = ap.parse_args(argv)
+    name = prog.rsplit(" ", 1)[-1]
+    try:
+        res = analyse(args.folders)
+    except ValueError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 2
+    if not res["table"]:
+        print(f"{name}: {empty}", file=sys.stderr)
+        return 2
+    first = args.folders[0]
+    out = args.out or (first if os.path.isdir(first) else os.path.dirname(first) or ".")
+    os.makedirs(out, exist_ok=True)
+    for fname, fig in figures(res):
+        p = os.path.join(out, f"{fname}.{args.format}")
+        fig.savefig(p, format=args.format)
+        print(p)
+    print("\n".join(format_table(res)), file=sys.stderr)
+    return 0

@@ -17,7 +17,6 @@
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -28,7 +27,7 @@ from matplotlib.figure import Figure
 from ..post.ensemble import read_summary
 from ..post.network import REVERSE_SIGMA
 from ..post.network_across_ensembles import LC_SIGMA, analyse, format_table
-from .base import new_figure, reference
+from .base import across_ensembles_cli, new_figure, reference
 from .network_across import _plain_log_ticks
 
 LABELS = {"C": "C  (−dσ/dγ̃ = σ²/C, reversed branch, σ = 10³–10⁵)",
@@ -136,25 +135,11 @@ def reverse_figure(res: dict) -> Figure:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m parflow.plot.network_ensembles",
-                                 description="Figures of network ensembles across dz")
-    ap.add_argument("folders", nargs="+", metavar="FOLDER")
-    ap.add_argument("--out", default=None, help="output folder (default: the first FOLDER)")
-    ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
-    args = ap.parse_args(argv)
-    res = analyse(args.folders)
-    if not res["table"]:
-        print("parflow.plot.network_ensembles: no network ensemble found", file=sys.stderr)
-        return 2
-    out = args.out or args.folders[0]
-    os.makedirs(out, exist_ok=True)
-    for name, draw in (("network_ensembles_across", across_figure),
-                       ("network_ensembles_reverse", reverse_figure)):
-        p = os.path.join(out, f"{name}.{args.format}")
-        draw(res).savefig(p, format=args.format)
-        print(p)
-    print("\n".join(format_table(res)), file=sys.stderr)
-    return 0
+    return across_ensembles_cli(
+        argv, "python -m parflow.plot.network_ensembles", "Figures of network ensembles across dz",
+        analyse, format_table, "no network ensemble found",
+        lambda res: [("network_ensembles_across", across_figure(res)),
+                     ("network_ensembles_reverse", reverse_figure(res))])
 
 
 if __name__ == "__main__":

@@ -14,16 +14,14 @@ from ``parflow.post.suspension_across_ensembles`` (Figs. 6e and 7b with error ba
 """
 from __future__ import annotations
 
-import argparse
 import math
-import os
 import sys
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from ..post.suspension_across_ensembles import PHI_J, analyse, format_table
-from .base import new_figure, reference
+from .base import across_ensembles_cli, new_figure, reference
 
 
 def _points(ax, rows, x, y, color, label, xkey_is_phi=False):
@@ -136,31 +134,13 @@ def across_figure(res: dict, N: int | None = None) -> Figure:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m parflow.plot.suspension_ensembles",
-                                 description="Figures of suspension ensembles across phi")
-    ap.add_argument("folders", nargs="+", metavar="PATH",
-                    help="ensemble folders, sample tables (JSON), or folders holding them")
-    ap.add_argument("--out", default=None, help="output folder (default: the first PATH)")
-    ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
-    args = ap.parse_args(argv)
-    try:
-        res = analyse(args.folders)
-    except ValueError as e:
-        print(f"parflow.plot.suspension_ensembles: {e}", file=sys.stderr)
-        return 2
-    if not res["table"]:
-        print("parflow.plot.suspension_ensembles: no suspension ensemble with a finished "
-              f"sample under {' '.join(args.folders)}", file=sys.stderr)
-        return 2
-    first = args.folders[0]
-    out = args.out or (first if os.path.isdir(first) else os.path.dirname(first) or ".")
-    os.makedirs(out, exist_ok=True)
-    for N in sorted({t["N"] for t in res["table"]}):
-        p = os.path.join(out, f"suspension_ensembles_across_N{N}.{args.format}")
-        across_figure(res, N).savefig(p, format=args.format)
-        print(p)
-    print("\n".join(format_table(res)), file=sys.stderr)
-    return 0
+    return across_ensembles_cli(
+        argv, "python -m parflow.plot.suspension_ensembles",
+        "Figures of suspension ensembles across phi (PATH: ensemble folders, sample tables, or "
+        "folders holding them)", analyse, format_table,
+        "no suspension ensemble with a finished sample found",
+        lambda res: [(f"suspension_ensembles_across_N{N}", across_figure(res, N))
+                     for N in sorted({t["N"] for t in res["table"]})])
 
 
 if __name__ == "__main__":
