@@ -32,6 +32,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 
 from ..errors import InputError
+from ..post.network_across_ensembles import analyse_or_report
 from ..post.runs import Run, load
 
 
@@ -195,13 +196,8 @@ def across_ensembles_cli(argv, prog: str, description: str, analyse, format_tabl
     ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
     args = ap.parse_args(argv)
     name = prog.rsplit(" ", 1)[-1]
-    try:
-        res = analyse(args.folders)
-    except ValueError as e:
-        print(f"{name}: {e}", file=sys.stderr)
-        return 2
-    if not res["table"]:
-        print(f"{name}: {empty}", file=sys.stderr)
+    res = analyse_or_report(analyse, (args.folders,), name, empty)
+    if res is None:
         return 2
     first = args.folders[0]
     out = args.out or (first if os.path.isdir(first) else os.path.dirname(first) or ".")

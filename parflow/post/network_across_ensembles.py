@@ -344,6 +344,20 @@ def _jsonable(x):
     return x
 
 
+def analyse_or_report(analyse, args: tuple, name: str, empty: str) -> dict | None:
+    """``analyse(*args)``, or None after one line on stderr: the ValueError of a bad input, or
+    ``empty`` when it found no ensemble (the command lines then exit 2)."""
+    try:
+        res = analyse(*args)
+    except ValueError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return None
+    if not res["table"]:
+        print(f"{name}: {empty}", file=sys.stderr)
+        return None
+    return res
+
+
 def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str,
             export=None) -> int:
     """The command line of an across-ensembles analysis: FOLDER... [--json OUT] [--boot B]
@@ -364,13 +378,8 @@ def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str
     if args.boot < 0:
         print(f"{name}: --boot must be >= 0 (0: no bootstrap)", file=sys.stderr)
         return 2
-    try:
-        res = analyse(args.folders, args.boot)
-    except ValueError as e:
-        print(f"{name}: {e}", file=sys.stderr)
-        return 2
-    if not res["table"]:
-        print(f"{name}: {empty}", file=sys.stderr)
+    res = analyse_or_report(analyse, (args.folders, args.boot), name, empty)
+    if res is None:
         return 2
     print("\n".join(format_table(res)))
     if args.json:
