@@ -63,6 +63,7 @@ from .io import RunFile, WriteError, atomic_h5, check_output_path
 from .post.ensemble import write_summary
 from .post.suspension_across_ensembles import export_samples, read_ensemble
 from .protocol import hms
+from .provenance import git_commit
 from .run import Run
 from .scene import EnsembleOptions, apply_settings, load_scene  # noqa: F401  ([ensemble])
 from .state import STOPS
@@ -397,6 +398,7 @@ def run_ensemble(base: dict, folder: str, samples: int, rps: int, *, restart: bo
     status: 0 every sample finished, 1 one or more failed; raises KeyboardInterrupt /
     Terminated (collectively) when a signal stopped it."""
     w = world()
+    git_commit()                  # read now, once: every sample records the code this job runs
     if w.getSize() % rps:
         raise InputError(f"ranks_per_sample = {rps} does not divide the job's {w.getSize()} "
                          f"ranks: run on a multiple of {rps} ranks")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib
 import os
 import subprocess
@@ -16,7 +17,11 @@ from . import __version__
 from .algebra.operators import petsc_version
 
 
+@functools.lru_cache(maxsize=None)
 def git_commit() -> str:
+    """The checkout's HEAD (``-dirty`` if modified), read once per process: the code a process
+    runs is what it imported, so the samples an ensemble starts later record the commit of
+    the process's start, not a HEAD that moved meanwhile."""
     here = os.path.dirname(os.path.abspath(__file__))
     try:
         out = subprocess.run(["git", "-C", here, "rev-parse", "HEAD"], capture_output=True,

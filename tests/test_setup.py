@@ -109,3 +109,22 @@ def test_ci_entry_point_runs_the_readme_test_command():
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert res.returncode != 0, res.stdout
     assert "deselected" in res.stdout, res.stdout
+
+
+def test_git_commit_is_read_once_per_process(monkeypatch):
+    """An ensemble's later samples record the commit the process started with, not a HEAD
+    that moved while it ran (the code in memory is what was imported)."""
+    import subprocess as sp
+
+    from parflow import provenance
+    calls = []
+    real = sp.run
+
+    def counting(*a, **kw):
+        calls.append(a[0])
+        return real(*a, **kw)
+    provenance.git_commit.cache_clear()
+    monkeypatch.setattr(provenance.subprocess, "run", counting)
+    first = provenance.git_commit()
+    assert provenance.git_commit() == first and len(calls) == 2      # rev-parse + status
+    provenance.git_commit.cache_clear()
