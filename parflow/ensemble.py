@@ -59,7 +59,7 @@ from .algebra.comm import idle_barrier, max_over, split_world, world
 from .algebra.solvers import SolveError, collective_cleanup
 from .checkpoint import check_checkpoint
 from .errors import InputError, Terminated, collective
-from .io import RunFile, WriteError, atomic_h5, check_output_path
+from .io import RunFile, WriteError, atomic_h5, atomic_json, check_output_path
 from .post.ensemble import write_summary
 from .post.suspension_across_ensembles import export_samples, read_ensemble
 from .protocol import hms
@@ -156,12 +156,7 @@ def read_records(folder: str) -> dict:
 def _write_record(folder: str, rec: dict) -> None:
     d = _records_dir(folder)
     os.makedirs(d, exist_ok=True)
-    path = os.path.join(d, f"sample_{rec['sample']:04d}.json")
-    with open(path + ".tmp", "w") as fh:
-        json.dump(rec, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(path + ".tmp", path)
+    atomic_json(os.path.join(d, f"sample_{rec['sample']:04d}.json"), rec)
 
 
 def read_index(folder: str) -> dict:

@@ -17,14 +17,15 @@ Layout:
 
 The package: :mod:`.reader` (``RunFile``, the one reader; ``read_run``, ``open_hdf5``,
 ``load_group``), :mod:`.writer` (``RunWriter``, ``atomic_h5``, the one whole-or-nothing writer,
-``collective_write``, ``OutputOptions`` = the scene's [output]), :mod:`.paths`
+``atomic_json`` its JSON twin, ``collective_write``, ``OutputOptions`` = the scene's [output]),
+:mod:`.paths`
 (``check_output_path``).
 """
 from .paths import check_output_path
 from .reader import FORMAT, HDF5_SIGNATURE, RunFile, load_group, open_hdf5, read_run
-from .writer import (CHUNK_ROWS, OutputOptions, RunWriter, WriteError, atomic_h5,
+from .writer import (CHUNK_ROWS, OutputOptions, RunWriter, WriteError, atomic_h5, atomic_json,
                      collective_write, h5_attr, write_failure)
 
 __all__ = ["CHUNK_ROWS", "FORMAT", "HDF5_SIGNATURE", "OutputOptions", "RunFile", "RunWriter",
-           "WriteError", "atomic_h5", "check_output_path", "collective_write", "h5_attr",
+           "WriteError", "atomic_h5", "atomic_json", "check_output_path", "collective_write", "h5_attr",
            "load_group", "open_hdf5", "read_run", "write_failure"]

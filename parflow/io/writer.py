@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import io
+import json
 import os
 import re
 import shutil
@@ -444,6 +445,21 @@ def _write_group(f, name, arrays: dict, attrs: dict):
             g.create_dataset(k, data=np.asarray(v))
     for k, v in attrs.items():
         g.attrs[k] = h5_attr(v)
+
+
+def atomic_json(path: str, obj, **dump_kw) -> None:
+    """Write ``obj`` as JSON to ``path`` whole or not at all: to ``path.tmp``, fsynced, renamed
+    over ``path`` (the twin removed on any error)."""
+    tmp = path + ".tmp"
+    try:
+        with open(tmp, "w") as fh:
+            json.dump(obj, fh, **dump_kw)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        _remove(tmp)
+        raise
 
 
 def h5_attr(v):

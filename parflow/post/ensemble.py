@@ -109,6 +109,48 @@ def sample_files(folder: str) -> list[tuple[int, str]]:
     return sorted(out)
 
 
+def is_ensemble(folder: str) -> bool:
+    """Whether ``folder`` is an ensemble folder (holds its index ensemble.h5)."""
+    return os.path.isfile(os.path.join(folder, "ensemble.h5"))
+
+
+def find_sources(paths, suffix: str | None = None) -> tuple[list[str], list[str]]:
+    """(ensemble folders, files named ``*suffix``) among ``paths`` and, for a folder that is
+    not an ensemble, among its entries (sorted); no files without ``suffix``."""
+    folders, files = [], []
+
+    def take(p):
+        if is_ensemble(p):
+            folders.append(p)
+        elif suffix is not None and p.endswith(suffix) and os.path.isfile(p):
+            files.append(p)
+    for p in paths:
+        if is_ensemble(p) or not os.path.isdir(p):
+            take(p)
+        else:
+            for q in sorted(os.listdir(p)):
+                take(os.path.join(p, q))
+    return folders, files
+
+
+def check_poolable(sources) -> None:
+    """Sources (label, scene text, sample seeds) that may be pooled into one ensemble: the
+    same scene apart from its seed, title, [ensemble] and [output] (:func:`scene_protocol`),
+    and no sample seed twice (negative seeds: unknown, not compared); ValueError naming the
+    two sources otherwise."""
+    (first, text, _), seen = sources[0], {}
+    proto = scene_protocol(text)
+    for label, scene, seeds in sources:
+        if label != first and (proto is None or scene_protocol(scene) != proto):
+            raise ValueError(f"{first} and {label} are not the same scene (apart from its "
+                             "seed): pass one of them")
+        for seed in seeds:
+            if seed in seen and seed >= 0:
+                raise ValueError(f"{seen[seed]} and {label} hold the same sample (seed "
+                                 f"{seed}): pass one of them")
+            seen[seed] = label
+
+
 def finished_samples(folder: str, model: str):
     """(run, row) for each sample of ``folder`` whose file loads, is of ``model`` and says
     complete, jammed or budget (:data:`DONE`); row = its index, seed, status and last step.
@@ -460,8 +502,7 @@ def summarise(folder: str) -> dict:
             curves.update(suspension_profiles(rs))
     ens = {}
     if "V2_forward" in curves:
-        ens.update(chain_ensemble_fit(curves["V2_forward"],
-                                      [chain_fits(r).get("dgamma_typical", 0.0) for r in rs]))
+        ens.update(chain_ensemble_fit(curves["V2_forward"], fits.get("dgamma_typical", [])))
     if rs:
         ens["jamming_rate"] = jamming_rate([r.attrs.get("status") for r in rs],
                                            scalars["final_strain"])
@@ -557,7 +598,7 @@ def main(argv=None) -> int:
     ap.add_argument("folders", nargs="+", metavar="FOLDER")
     args = ap.parse_args(argv)
     for folder in args.folders:
-        if not os.path.isfile(os.path.join(folder, "ensemble.h5")):
+        if not is_ensemble(folder):
             print(f"parflow.post.ensemble: {folder}: not an ensemble folder (no ensemble.h5)",
                   file=sys.stderr)
             return 2

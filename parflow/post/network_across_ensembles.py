@@ -55,12 +55,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 
 import numpy as np
 
-from .ensemble import finished_samples, jackknife, mean_sem, network_curves
+from .ensemble import finished_samples, find_sources, jackknife, mean_sem, network_curves
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
@@ -150,22 +149,6 @@ def read_ensemble(folder: str) -> dict:
                                has_spectrum=any("omega" in a for a in r.analysis), **v))
     curve = network_curves(runs).get("dsigma_dgamma_reverse") if runs else None
     return dict(folder=folder, samples=rows, C_curve=curve_C(curve))
-
-
-def is_ensemble(folder: str) -> bool:
-    return os.path.isfile(os.path.join(folder, "ensemble.h5"))
-
-
-def find_ensembles(paths) -> list[str]:
-    """Ensemble folders among ``paths`` and, for a path that is not one, its sub-folders."""
-    out = []
-    for p in paths:
-        if is_ensemble(p):
-            out.append(p)
-        elif os.path.isdir(p):
-            out.extend(os.path.join(p, q) for q in sorted(os.listdir(p))
-                       if is_ensemble(os.path.join(p, q)))
-    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -295,7 +278,7 @@ def across(table: list[dict], n_boot: int = N_BOOT) -> dict:
 
 def analyse(paths, n_boot: int = N_BOOT) -> dict:
     """The ensembles under ``paths``: the per-(N, dz) table and the fits across dz."""
-    ens = [read_ensemble(f) for f in find_ensembles(paths)]
+    ens = [read_ensemble(f) for f in find_sources(paths)[0]]
     table = [per_dz(e) for e in combine(ens)]
     return dict(table=table, across=across(table, n_boot), lc_sigma=list(LC_SIGMA))
 

@@ -33,8 +33,8 @@ import sys
 
 import numpy as np
 
-from .ensemble import (GRID_POINTS, chain_ensemble_fit, jamming_rate, on_grid, read_summary,
-                       scene_protocol, write_summary_file)
+from .ensemble import (GRID_POINTS, chain_ensemble_fit, check_poolable, jamming_rate, on_grid,
+                       read_summary, scene_protocol, write_summary_file)
 
 
 def _summary_path(p: str) -> str:
@@ -92,23 +92,15 @@ def pool_summaries(paths) -> dict:
             raise ValueError(f"{f}: no such summary (an ensemble folder's summary.h5, or the file)")
         S.append(read_summary(f))
     model = str(S[0]["attrs"].get("model", ""))
-    proto = scene_protocol(str(S[0]["attrs"].get("scene", "")))
-    if proto is None:
+    if scene_protocol(str(S[0]["attrs"].get("scene", ""))) is None:
         raise ValueError(f"{files[0]}: the summary records no scene (made before 2026-12-03?): "
                          "write it again (python -m parflow.post.ensemble FOLDER) to pool it")
-    seen = {}
     for f, s in zip(files, S):
         if str(s["attrs"].get("model", "")) != model:
             raise ValueError(f"{files[0]} and {f}: different models "
                              f"({model}, {s['attrs'].get('model')}): pass summaries of one scene")
-        if scene_protocol(str(s["attrs"].get("scene", ""))) != proto:
-            raise ValueError(f"{files[0]} and {f} are not the same scene (apart from its seed): "
-                             "pass summaries of one scene")
-        for seed in np.asarray(s["samples"]["seed"]).tolist():
-            if seed in seen and seed >= 0:
-                raise ValueError(f"{seen[seed]} and {f} hold the same sample (seed {seed}): "
-                                 "pass one of them")
-            seen[seed] = f
+    check_poolable([(f, str(s["attrs"].get("scene", "")), np.asarray(s["samples"]["seed"]).tolist())
+                    for f, s in zip(files, S)])
     n_used = [len(s["samples"]["used"]) for s in S]
     index_of = []                  # per input: its sample indices -> pooled positions
     status, seed, used, offset = [], [], [], 0

@@ -70,9 +70,11 @@ import sys
 
 import numpy as np
 
-from .ensemble import finished_samples, jackknife, jamming_rate, mean_sem, scene_protocol
+from .ensemble import (check_poolable, find_sources, finished_samples, jackknife, jamming_rate,
+                       mean_sem)
+from ..io import atomic_json
 from .fits import fit_power_law_err
-from .network_across_ensembles import _jsonable, is_ensemble, run_cli
+from .network_across_ensembles import _jsonable, run_cli
 from .suspension import suspension_fits
 
 PHI_J = 0.843                     # phi_J of the mixture, = packing.mixture.PHI_J_2D (post does
@@ -156,10 +158,7 @@ def export_samples(ens: dict, path: str) -> None:
     doc = dict(kind=SAMPLES_KIND, version=SAMPLES_VERSION,
                source=os.path.basename(os.path.normpath(ens["folder"])),
                provenance=ens.get("provenance", {}), samples=rows)
-    tmp = path + ".tmp"
-    with open(tmp, "w") as fh:
-        json.dump(_jsonable(doc), fh, indent=1, allow_nan=False)
-    os.replace(tmp, path)
+    atomic_json(path, _jsonable(doc), indent=1, allow_nan=False)
 
 
 def load_samples(path: str) -> dict:
@@ -188,25 +187,6 @@ def load_samples(path: str) -> dict:
                                   for a in v) for k, v in r["points"].items()}
         rows.append(row)
     return dict(folder=path, samples=rows, provenance=doc.get("provenance", {}))
-
-
-def find_sources(paths) -> tuple[list[str], list[str]]:
-    """(ensemble folders, sample tables) among ``paths`` and, for a folder that is not an
-    ensemble, among its entries."""
-    folders, tables = [], []
-
-    def take(p):
-        if is_ensemble(p):
-            folders.append(p)
-        elif os.path.isfile(p) and p.endswith(".json"):
-            tables.append(p)
-    for p in paths:
-        if is_ensemble(p) or not os.path.isdir(p):
-            take(p)
-        else:
-            for q in sorted(os.listdir(p)):
-                take(os.path.join(p, q))
-    return folders, tables
 
 
 def per_phi(ens: dict) -> dict:
@@ -386,30 +366,17 @@ def across(table: list[dict], n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> di
 
 
 def pool(group: list[dict]) -> dict:
-    """One ensemble from several of the same (N, phi): their samples together, if no sample
-    seed occurs twice (the same realisation counted twice) and the scenes agree but for the
-    seed (e.g. the same scene run again with another ``seed``: docs/ensembles.md); else
+    """One ensemble from several of the same (N, phi): their samples together, if they may be
+    pooled (``post.ensemble.check_poolable``: the same scene but for the seed, e.g. the same
+    scene run again with another ``seed`` -- docs/ensembles.md -- and no sample twice); else
     ValueError naming the two."""
-    first = group[0]
-    seeds = {x["seed"]: first["folder"] for x in first["samples"]}
-    proto = scene_protocol(first.get("provenance", {}).get("scene", ""))
-    for e in group[1:]:
-        again = [x["seed"] for x in e["samples"] if x["seed"] in seeds]
-        if again:
-            raise ValueError(f"{seeds[again[0]]} and {e['folder']} hold the same sample (seed "
-                             f"{again[0]}): pass one of them")
-        other = scene_protocol(e.get("provenance", {}).get("scene", ""))
-        if proto is None or other != proto:
-            raise ValueError(f"{first['folder']} and {e['folder']} are both N = "
-                             f"{int(first['samples'][0]['N'])}, phi = "
-                             f"{float(first['samples'][0]['phi']):g} but not the same scene "
-                             f"(apart from its seed): pass one of them")
-        seeds.update({x["seed"]: e["folder"] for x in e["samples"]})
+    check_poolable([(e["folder"], e.get("provenance", {}).get("scene", ""),
+                     [x["seed"] for x in e["samples"]]) for e in group])
     if len(group) == 1:
-        return first
+        return group[0]
     return dict(folder=" + ".join(e["folder"] for e in group),
                 samples=[x for e in group for x in e["samples"]],
-                provenance=dict(scene=first["provenance"]["scene"],
+                provenance=dict(scene=group[0]["provenance"]["scene"],
                                 samples=[p for e in group
                                          for p in e.get("provenance", {}).get("samples", [])]))
 
@@ -417,7 +384,7 @@ def pool(group: list[dict]) -> dict:
 def read_sources(paths) -> list[dict]:
     """The ensembles under ``paths`` (:func:`find_sources`) with a finished sample, those of
     the same (N, phi) pooled (:func:`pool`)."""
-    folders, tables = find_sources(paths)
+    folders, tables = find_sources(paths, ".json")
     ens = [read_ensemble(f) for f in folders] + [load_samples(t) for t in tables]
     groups: dict = {}
     for e in ens:
