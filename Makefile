@@ -1,7 +1,8 @@
 # parflow: setup, test, run, benchmark.  Environment: scripts/env.sh (the only place).
 #
 #   make setup                      apt packages (if missing) + .venv + editable install
-#   make test                       pytest serial, then under mpirun -n 2; fails if either fails
+#   make test [TEST_JOBS=n]         pytest serial (on n processes, default: the cores), then
+#                                   under mpirun -n 2; fails if either fails
 #   make run [SCENE=x.toml] [ARGS=...] [NP=2]
 #                                   mpirun -n $(NP) python -m parflow.shear $(SCENE) $(ARGS)
 #                                   (ARGS defaults to --overwrite: make run can be repeated;
@@ -22,6 +23,7 @@ NP          ?= 2
 SCENE       ?=
 ARGS        ?= --overwrite
 PYTEST_ARGS ?=
+TEST_JOBS   ?= $(shell nproc 2>/dev/null || echo 1)
 
 .PHONY: help setup test test-serial test-mpi run bench clean
 
@@ -45,8 +47,14 @@ test: $(STAMP)
 	if [ $$rc -ne 0 ]; then echo "make test: FAILED (see above)"; else echo "make test: serial and mpirun -n $(NP) passed"; fi; \
 	exit $$rc
 
+# The serial session runs on TEST_JOBS processes (pytest-xdist, one test file per process at
+# a time: a file's fixtures are built once) when xdist is installed and TEST_JOBS > 1;
+# TEST_JOBS=1 runs it in one process, as without xdist.
 test-serial: $(STAMP)
-	$(ENV) $(PY) -m pytest tests $(PYTEST_ARGS)
+	$(ENV) jobs=$(TEST_JOBS); \
+	if [ "$$jobs" -gt 1 ] && $(PY) -c 'import xdist' 2>/dev/null; then \
+	  set -- -n "$$jobs" --dist loadfile; else set --; fi; \
+	$(PY) -m pytest "$$@" tests $(PYTEST_ARGS)
 
 # No cache plugin under MPI: all ranks would write .pytest_cache at the same time.
 # mpirun hands the ranks a pseudo-terminal, so decide on colour from make's own stdout.

@@ -2,6 +2,7 @@
 # One-command setup for parflow (Debian 12 or newer):
 #   1. apt-get install PETSc/SLEPc/MPI/h5py/scipy/... for Debian's /usr/bin/python3
 #      (skipped when they already import, so a second run takes a few seconds);
+#      pytest-xdist likewise, but optional (a failed install only warns);
 #   2. a venv .venv with --system-site-packages on top of /usr/bin/python3;
 #   3. parflow installed editable into it, without dependencies (pip must never
 #      build PETSc or pull numpy 2 from PyPI);
@@ -25,6 +26,9 @@ APT_PACKAGES=(
     python3-venv python3-setuptools python3-wheel python3-numba
     openmpi-bin make
 )
+# Not required: runs the serial test session on every core (make test falls back to one
+# process without it).  Installed by the apt step when missing; a failure there only warns.
+APT_OPTIONAL=(python3-pytest-xdist)
 
 log() { printf '[setup] %s\n' "$*"; }
 die() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
@@ -71,6 +75,22 @@ else
     if ! system_ready; then
         H5PY_ALWAYS_USE_MPI=1 "$SYS_PY" -c 'import petsc4py, slepc4py, mpi4py, h5py, scipy, matplotlib, pytest' || true
         die "system packages still not importable after apt (PETSC_DIR=${PETSC_DIR:-unset}, SLEPC_DIR=${SLEPC_DIR:-unset})"
+    fi
+fi
+
+# optional packages: one apt attempt when missing, never fatal
+if ! "$SYS_PY" -c 'import xdist' >/dev/null 2>&1; then
+    if [ "${PARFLOW_SETUP_DRY_RUN:-0}" = 1 ]; then
+        log "dry run: would run apt-get install -y ${APT_OPTIONAL[*]}"
+    else
+        log "installing optional packages with apt: ${APT_OPTIONAL[*]}"
+        SUDO=()
+        [ "$(id -u)" -eq 0 ] || SUDO=(sudo)
+        apt_optional() { "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive apt-get "$@" >/dev/null 2>&1; }
+        if ! apt_optional install -y "${APT_OPTIONAL[@]}" &&
+           ! { apt_optional update && apt_optional install -y "${APT_OPTIONAL[@]}"; }; then
+            log "warning: could not install ${APT_OPTIONAL[*]}: make test runs its serial part in one process"
+        fi
     fi
 fi
 

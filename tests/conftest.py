@@ -26,7 +26,25 @@ import sys
 import tempfile
 from pathlib import Path
 
-import petsc4py
+
+def _drop_inherited_singleton():
+    """Open MPI's singleton init (MPI without mpirun, as in a serial session) writes its
+    PMIx contact into the C environment.  A process started from such a one -- a
+    pytest-xdist worker started by the controlling pytest -- inherits it, and would join
+    the parent's singleton instead of starting its own, and hand it to every mpirun it
+    runs (which then fails at once, silently).  Drop it before MPI starts here; ranks
+    started by mpirun (OMPI_COMM_WORLD_SIZE set) keep theirs."""
+    if os.environ.get("OMPI_MCA_ess") != "singleton" or "OMPI_COMM_WORLD_SIZE" in os.environ:
+        return
+    for k in list(os.environ):
+        if k.startswith("PMIX_") or k in ("OMPI_MCA_ess", "OMPI_COMMAND", "OMPI_MCA_pmix",
+                                          "OMPI_APP_CTX_NUM_PROCS") or k.startswith("OMPI_MCA_orte_"):
+            del os.environ[k]                 # also unsetenv: the C environment
+
+
+_drop_inherited_singleton()
+
+import petsc4py  # noqa: E402
 
 petsc4py.init(sys.argv[:1])
 import slepc4py  # noqa: E402
