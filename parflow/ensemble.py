@@ -32,7 +32,8 @@ the end of its step with a checkpoint, like a single run; no new sample is start
 *Records.*  Each finished sample leaves ``FOLDER/.ensemble/sample_0007.json`` (its index,
 seed, status, message, steps, wall and CPU seconds of its group's rank 0; written whole by a
 rename); at the end world rank 0 writes the index ``FOLDER/ensemble.h5`` (``io.atomic_h5``: the scene, settings, rule,
-and one row per sample) and the statistics ``FOLDER/summary.h5`` (``post.ensemble``).
+and one row per sample), the statistics ``FOLDER/summary.h5`` (``post.ensemble``) and, for a
+suspension or network ensemble, its sample table ``FOLDER/samples.json`` (:data:`SAMPLE_TABLES`).
 
 The [ensemble] table (samples, ranks_per_sample) is ``scene.EnsembleOptions``, re-exported
 here: the scene schema sits below the run.
@@ -61,7 +62,7 @@ from .checkpoint import check_checkpoint
 from .errors import InputError, Terminated, collective
 from .io import RunFile, WriteError, atomic_h5, atomic_json, check_output_path
 from .post.ensemble import write_summary
-from .post.suspension_across_ensembles import export_samples, read_ensemble
+from .post import network_across_ensembles, suspension_across_ensembles
 from .protocol import hms
 from .provenance import git_commit
 from .run import Run
@@ -71,7 +72,9 @@ from .state import STOPS
 log = logging.getLogger("parflow")
 
 INDEX_FORMAT = "parflow-ensemble-1"
-SAMPLE_TABLE = "samples.json"       # a suspension ensemble's sample table (post.suspension_across_ensembles)
+SAMPLE_TABLE = "samples.json"       # the sample table of a suspension or network ensemble
+# model -> the post module whose read_ensemble / export_samples write its sample table
+SAMPLE_TABLES = {"suspension": suspension_across_ensembles, "network": network_across_ensembles}
 SEED_RULE = ("seed_k = SeedSequence(seed, spawn_key=(k,)).generate_state(1, uint64)[0] >> 1 "
              "(numpy)")
 DONE = ("complete", "jammed", "budget")          # a finished sample
@@ -488,10 +491,11 @@ def _finish(folder: str, base: dict, samples: int, rps: int, stop_code: int) -> 
         print(f"parflow.shear: ensemble: summary not written ({type(exc).__name__}: {exc}); "
               f"the sample files are in {folder}", file=sys.stderr)
         code = 1
-    if base["scene"]["model"]["name"] == "suspension":
-        try:              # the suspension's sample table (docs/ensembles.md "Sample tables")
+    tables = SAMPLE_TABLES.get(base["scene"]["model"]["name"])
+    if tables is not None:
+        try:              # the sample table (docs/ensembles.md "Sample tables")
             table = os.path.join(folder, SAMPLE_TABLE)
-            export_samples(read_ensemble(folder), table)
+            tables.export_samples(tables.read_ensemble(folder), table)
             log.info("ensemble: sample table %s", table)
         except Exception as exc:
             print(f"parflow.shear: ensemble: sample table not written ({type(exc).__name__}: "

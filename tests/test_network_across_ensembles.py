@@ -1,10 +1,13 @@
 """Network ensembles across dz (parflow.post.network_across_ensembles): the across-dz power
 law and its error against a direct numpy computation (weighted least squares), the bootstrap
 over networks against the propagated error, the per-dz means and standard errors against
-numpy on the sample files of a tiny network ensemble, and the pairing of a spectrum
-ensemble with the shear ensemble of the same networks."""
+numpy on the sample files of a tiny network ensemble, the pairing of a spectrum
+ensemble with the shear ensemble of the same networks, and the sample tables (the same
+analysis as the run files, pooling, refusals)."""
+import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 
@@ -261,3 +264,200 @@ def test_N40000_scenes_are_valid(z):
     from parflow.scene import load_scene   # (the scene schema: only these tests need it)
     sc = load_scene(open(os.path.join(ROOT, "runs", f"ensemble_network_N40000_z{z}.toml")).read())
     assert sc["model"]["N"] == 40000 and sc["ensemble"]["samples"] >= 3
+
+
+# ---------------------------------------------------------------------------------------
+# sample tables
+# ---------------------------------------------------------------------------------------
+def _strip_folders(x):
+    if isinstance(x, dict):
+        return {k: _strip_folders(v) for k, v in x.items() if k not in ("folder", "folders")}
+    if isinstance(x, list):
+        return [_strip_folders(v) for v in x]
+    return x
+
+
+def _synthetic_pair():
+    """A shear ensemble (C, a reversed-branch curve) and its companion of spectra, as
+    ``read_ensemble`` returns them."""
+    x = np.geomspace(10, 1e6, 40)
+    vals = x ** 2 / np.array([0.03, 0.05, 0.04])[:, None]
+    vals[1, x > 2e5] = np.nan
+    scene = 'seed = 3\n[model]\nname = "network"\nN = 64\n'
+    shear = dict(folder="runs/z3.8", samples=[_row(0, 11, C=0.03), _row(1, 12, C=0.05),
+                                              _row(2, 13, C=0.04, status="jammed")],
+                 curve=dict(x=x, values=vals), C_curve=nae.curve_C(dict(x=x, values=vals)),
+                 provenance=dict(scene=scene, samples=[]))
+    gap = dict(folder="runs/gap_z3.8",
+               samples=[_row(0, 11, has_spectrum=True, omega_star=0.04, omega_star_70=0.05),
+                        _row(1, 99, has_spectrum=True, omega_star=0.5),
+                        _row(2, 13, has_spectrum=True, omega_star=0.06)],
+               curve=None, C_curve=nae.curve_C(None), provenance=dict(scene="", samples=[]))
+    return shear, gap
+
+
+def test_tables_of_a_shear_and_a_companion_ensemble_combine_as_the_ensembles(comm, mpi_tmp_path):
+    """export_samples / load_samples give back every number combine and per_dz use, the
+    companion's omega* pairing and C_curve included (written on rank 0, as at the end of an
+    ensemble, read on every rank)."""
+    shear, gap = _synthetic_pair()
+    paths = [str(mpi_tmp_path / f"{n}.json") for n in nae.table_names([shear, gap])]
+    assert [os.path.basename(p) for p in paths] == ["dz0.2000_N64.json", "gap_dz0.2000_N64.json"]
+    if comm.rank == 0:
+        for e, p in zip((shear, gap), paths):
+            nae.export_samples(e, p)
+    comm.Barrier()
+    doc = json.loads(open(paths[0]).read())
+    assert doc["kind"] == nae.SAMPLES_KIND and doc["version"] == 1 and doc["source"] == "z3.8"
+    assert doc["samples"][0]["omega_star"] is None                   # NaN as null
+    assert doc["reverse_curve"]["values"][1][-1] is None
+    loaded = [nae.load_samples(p) for p in paths]
+    assert loaded[1]["curve"] is None and loaded[0]["samples"][2]["status"] == "jammed"
+    assert loaded[0]["C_curve"] == shear["C_curve"]
+    direct = [nae.per_dz(e) for e in nae.combine([shear, gap])]
+    again = [nae.per_dz(e) for e in nae.combine(loaded)]
+    assert again[0]["folders"] == paths
+    assert _strip_folders(nae._jsonable(again)) == _strip_folders(nae._jsonable(direct))
+    assert again[0]["omega_star"]["n"] == 2 and again[0]["omega_star_70"]["values"][0] == 0.05
+    # a table of spectra and the folder-like shear ensemble pair as well
+    mixed = nae.combine([shear, loaded[1]])
+    assert [s["omega_star"] for s in mixed[0]["samples"]][::2] == [0.04, 0.06]
+
+
+def test_table_names_tell_apart_companions_and_parts():
+    shear, gap = _synthetic_pair()
+    part = dict(shear, folder="runs/z3.8_seed4")
+    assert nae.table_names([shear, gap, part]) == [
+        "dz0.2000_N64_z3.8", "gap_dz0.2000_N64", "dz0.2000_N64_z3.8_seed4"]
+    assert nae.table_names([shear, dict(shear, folder="other/z3.8")]) == [
+        "dz0.2000_N64_z3.8", "dz0.2000_N64_z3.8_2"]
+
+
+def test_pooled_curve_C_needs_one_grid():
+    shear, _ = _synthetic_pair()
+    other = dict(shear, curve=dict(x=shear["curve"]["x"], values=shear["curve"]["values"][:2]))
+    got = nae.pooled_curve_C([shear, other])
+    both = np.vstack([shear["curve"]["values"], shear["curve"]["values"][:2]])
+    assert got == nae.curve_C(dict(x=shear["curve"]["x"], values=both)) and got["n"] == 5
+    moved = dict(shear, curve=dict(x=shear["curve"]["x"] * 1.001, values=shear["curve"]["values"]))
+    assert math.isnan(nae.pooled_curve_C([shear, moved])["mean"])
+    assert nae.pooled_curve_C([shear, moved])["n"] == 0
+    assert math.isnan(nae.pooled_curve_C([shear, dict(shear, curve=None)])["mean"])
+
+
+def _one_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+@pytest.mark.serial_only
+def test_sample_tables_give_the_analysis_of_the_run_files(tiny, tmp_path, capsys):
+    tables = tmp_path / "tables"
+    assert nae.main([str(tiny), "--boot", "0", "--export", str(tables)]) == 0
+    direct = nae.analyse([str(tiny)], n_boot=30)
+    name = f"dz{direct['table'][0]['dz']:.4f}_N128.json"
+    assert os.listdir(tables) == [name]
+    table = str(tables / name)
+    again = nae.analyse([str(tables)], n_boot=30)
+    assert again["table"][0]["folders"] == [table]
+    assert _strip_folders(nae._jsonable(again)) == _strip_folders(nae._jsonable(direct))
+    assert np.isfinite(again["table"][0]["C_curve"]["mean"])
+    assert again["table"][0]["C_curve"] == direct["table"][0]["C_curve"]
+    # the ensemble wrote its own table at its end: the same numbers
+    own = json.loads((tiny / "z3.8" / "samples.json").read_text())
+    exported = json.loads(open(table).read())
+    assert own["samples"] == exported["samples"] and own["kind"] == nae.SAMPLES_KIND
+    assert own["reverse_curve"] == exported["reverse_curve"]
+    e = nae.load_samples(table)
+    assert [x["sample"] for x in e["samples"]] == [0, 1, 2]
+    prov = e["provenance"]
+    assert len(prov["samples"]) == 3 and "[model]" in prov["scene"]
+    assert all(p["created"] and p["parflow_version"] for p in prov["samples"])
+    # the --json result beside the tables is passed over when the folder is searched
+    assert nae.main([str(tables), "--boot", "0", "--json", str(tables / "across.json")]) == 0
+    assert nae.analyse([str(tables)], n_boot=0)["table"][0]["n_samples"] == 3
+    # the same ensemble as a folder and as a table: one line, exit 2
+    capsys.readouterr()
+    assert nae.main([str(tiny / "z3.8"), table]) == 2
+    assert "the same sample (seed" in _one_line(capsys)
+    # more networks of a dz (the same scene, other seeds): pooled, from two tables
+    doc = json.loads(open(table).read())
+    for x in doc["samples"]:
+        x["seed"] += 1000
+    (tmp_path / "more.json").write_text(json.dumps(doc))
+    pooled = nae.analyse([table, str(tmp_path / "more.json")], n_boot=0)
+    assert len(pooled["table"]) == 1
+    t, one = pooled["table"][0], direct["table"][0]
+    assert t["n_samples"] == 6 and t["folders"] == [table, str(tmp_path / "more.json")]
+    for q in ("C", "C2", "gamma_j", "omega_star"):
+        v = np.array(one[q]["values"] * 2)
+        assert t[q]["n"] == 6 and t[q]["values"] == pytest.approx(v.tolist(), rel=1e-12)
+        assert t[q]["mean"] == pytest.approx(v.mean(), rel=1e-12)
+        assert t[q]["sem"] == pytest.approx(v.std(ddof=1) / math.sqrt(6), rel=1e-10)
+    # C_curve of the pooled entry: the curves concatenated (the same grid here), with numpy
+    x = np.asarray(doc["reverse_curve"]["x"], float)
+    vals = np.array([[np.nan if u is None else u for u in r]
+                     for r in doc["reverse_curve"]["values"] * 2], float)
+    w = (x >= 1e3) & (x <= 1e5)
+
+    def c_of(rows):
+        v = rows[:, w]
+        ok = np.all(np.isfinite(v) & (v > 0), axis=0)
+        return np.exp(np.mean(2 * np.log(x[w][ok]) - np.log(v[:, ok].mean(axis=0))))
+    loo = np.array([c_of(np.delete(vals, i, axis=0)) for i in range(6)])
+    assert t["C_curve"]["n"] == 6
+    assert t["C_curve"]["mean"] == pytest.approx(c_of(vals), rel=1e-12)
+    assert t["C_curve"]["sem"] == pytest.approx(math.sqrt(5 / 6 * np.sum((loo - loo.mean()) ** 2)),
+                                                rel=1e-10)
+    # the folder and a table of other seeds pool the same way
+    mixed = nae.analyse([str(tiny / "z3.8"), str(tmp_path / "more.json")], n_boot=0)
+    assert _strip_folders(nae._jsonable(mixed)) == _strip_folders(nae._jsonable(pooled))
+    # another grid: the pooled C_curve is NaN, the per-network numbers still pool
+    doc["reverse_curve"]["x"] = [u * 1.001 for u in doc["reverse_curve"]["x"]]
+    (tmp_path / "moved.json").write_text(json.dumps(doc))
+    moved = nae.analyse([table, str(tmp_path / "moved.json")], n_boot=0)["table"][0]
+    assert math.isnan(moved["C_curve"]["mean"]) and moved["C"]["n"] == 6
+    # another scene at the same dz is refused
+    doc["provenance"]["scene"] = doc["provenance"]["scene"].replace("strain = 1.0", "strain = 0.9")
+    assert "strain = 0.9" in doc["provenance"]["scene"]
+    (tmp_path / "other.json").write_text(json.dumps(doc))
+    assert nae.main([table, str(tmp_path / "other.json")]) == 2
+    assert "not the same scene" in _one_line(capsys)
+    # a JSON that is not a table, named or inside a searched folder
+    bad = tmp_path / "bad" / "bad.json"
+    bad.parent.mkdir()
+    bad.write_text('{"kind": "something else"}')
+    for arg in (bad, bad.parent):
+        assert nae.main([str(arg)]) == 2
+        line = _one_line(capsys)
+        assert str(bad) in line and "not a network sample table" in line
+    (tmp_path / "result.json").write_text('{"table": []}')        # named: must be a table
+    assert nae.main([str(tmp_path / "result.json")]) == 2
+    assert "result.json: not a network sample table" in _one_line(capsys)
+    (tmp_path / "broken.json").write_text(json.dumps(dict(exported, samples=[{"sample": 0}])))
+    assert nae.main([str(tmp_path / "broken.json")]) == 2
+    assert "broken.json" in _one_line(capsys)
+
+
+@pytest.mark.serial_only
+def test_end_of_ensemble_table_failure_is_one_line_and_exit_1(tiny, tmp_path, monkeypatch, capsys):
+    """The end of a network ensemble (parflow.ensemble._finish) writes FOLDER/samples.json;
+    when it cannot, it says so in one line and the job's status is 1 (the samples stay)."""
+    from parflow import ensemble      # (the driver side: only this test needs it)
+    folder = str(tmp_path / "z3.8")
+    shutil.copytree(tiny / "z3.8", folder)
+    os.remove(os.path.join(folder, "samples.json"))
+    base = dict(scene=dict(model=dict(name="network")))
+    assert ensemble._finish(folder, base, 3, 1, 0) == 0
+    assert nae.load_samples(os.path.join(folder, "samples.json"))["samples"][2]["sample"] == 2
+    os.remove(os.path.join(folder, "samples.json"))
+
+    def fail(ens, path):
+        raise OSError("disk full")
+    monkeypatch.setattr(nae, "export_samples", fail)
+    capsys.readouterr()
+    assert ensemble._finish(folder, base, 3, 1, 0) == 1
+    line = _one_line(capsys)
+    assert "sample table not written (OSError: disk full)" in line
+    assert not os.path.exists(os.path.join(folder, "samples.json"))

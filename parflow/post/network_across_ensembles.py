@@ -46,20 +46,41 @@ the means recomputed and refitted with the same weights; its error is the standa
 deviation of the refitted p.  Predictions: C ~ dz^-1/2, C2 ~ dz^1/2, omega* ~ dz,
 l_c ~ dz^-1/2 (:data:`PREDICTED`).
 
-``python -m parflow.post.network_across_ensembles FOLDER... [--json OUT]`` prints the
-table and the exponents; a FOLDER that is not an ensemble folder is searched one level down
-for ensemble folders (``out/network_ensembles`` holds ``z3.8/``, ``gap_z3.8/``, ...).
+Sample tables (:func:`export_samples`, :func:`load_samples`; docs/ensembles.md "Sample
+tables"): the per-sample numbers of one ensemble (:data:`ROW_KEYS`: everything above uses)
+and its reversed-branch curve (the grid and each network's |dsigma/dgamma| on it, from which
+``C_curve`` is recomputed) as one small JSON file (kind :data:`SAMPLES_KIND`, with the git
+commit, version and creation time of each sample's run file and the scene of sample 0), so
+that ensembles run at different times, on machines whose run files are gone, enter one
+analysis; every network ensemble writes its own as ``FOLDER/samples.json`` at its end.  An
+analysis reads run folders and tables alike (:func:`read_sources`).  Main ensembles of the
+same (N, dz) are pooled into one entry when they are the same scene but for its seed and
+share no sample seed (:func:`combine`: more networks of a dz, run at another time), and
+refused otherwise; their ``C_curve`` is that of the concatenated curves when their grids are
+the same, else NaN (:func:`pooled_curve_C`).  Companion spectrum ensembles pair with the
+pooled samples by index and seed, as tables or folders.
+
+``python -m parflow.post.network_across_ensembles PATH... [--json OUT] [--export DIR]``
+prints the table and the exponents; a PATH is an ensemble folder, a sample table, or a
+folder searched one level down for both (``out/network_ensembles`` holds ``z3.8/``,
+``gap_z3.8/``, ...; a ``.json`` there without a ``kind``, such as the ``--json`` result, is
+passed over); ``--export DIR`` writes the sample table of every ensemble folder read into DIR
+(``dz0.2000_N4096.json``, ``gap_dz0.2000_N4096.json`` for a companion: :func:`table_names`).
+Figures: ``python -m parflow.plot.network_ensembles``.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import sys
 
 import numpy as np
 
-from .ensemble import finished_samples, find_sources, jackknife, mean_sem, network_curves
+from ..io import atomic_json
+from .ensemble import (check_poolable, finished_samples, find_sources, jackknife, mean_sem,
+                       network_curves)
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
@@ -74,6 +95,10 @@ OMEGA_KEYS = ("omega_star",) + tuple(f"omega_star_{round(100 * f)}" for f in OME
 QUANTITIES = ("C", "a", "C_hi", "a_hi", "C2") + OMEGA_KEYS + ("l_c", "gamma_j")
 PREDICTED = {"C": -0.5, "C_hi": -0.5, "C_curve": -0.5, "C2": 0.5, "l_c": -0.5} | {
     k: 1.0 for k in OMEGA_KEYS}
+SAMPLES_KIND = "parflow network ensemble samples"
+SAMPLES_VERSION = 1
+ROW_KEYS = ("sample", "seed", "status", "steps", "N", "z", "dz", "has_spectrum") + QUANTITIES
+NO_CURVE = dict(mean=float("nan"), sem=float("nan"), n=0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -130,8 +155,11 @@ def curve_C(curve: dict | None, window: tuple = REVERSE_SIGMA) -> dict:
 def read_ensemble(folder: str) -> dict:
     """The samples of one ensemble folder that finished (complete, jammed, budget): their
     index, seed, status, steps and :func:`sample_values`, and N, z, dz of the ensemble;
-    ``C_curve`` (:func:`curve_C` of their averaged reversed branch)."""
-    rows, runs = [], []
+    ``curve``, their reversed branches on a common grid (``post.ensemble.network_curves``'s
+    ``dsigma_dgamma_reverse``: dict(x, values), one row of values per sample; None without a
+    reversed leg) and ``C_curve`` (:func:`curve_C` of it); ``provenance``: each sample's git
+    commit, parflow version and creation time, and sample 0's scene."""
+    rows, runs, prov = [], [], dict(samples=[], scene="")
     for r, row in finished_samples(folder, "network"):
         fits = network_fits(r)
         fw = forward_rows(r)
@@ -147,18 +175,174 @@ def read_ensemble(folder: str) -> dict:
         runs.append(r)
         rows.append(row | dict(N=int(r.param("N")), z=network_z(r), dz=network_dz(r),
                                has_spectrum=any("omega" in a for a in r.analysis), **v))
-    curve = network_curves(runs).get("dsigma_dgamma_reverse") if runs else None
-    return dict(folder=folder, samples=rows, C_curve=curve_C(curve))
+        prov["samples"].append(dict(sample=row["sample"], **{
+            k: str(r.attrs.get(k, "")) for k in ("git_commit", "parflow_version", "created")}))
+        if not prov["scene"]:
+            prov["scene"] = str(r.attrs.get("scene", ""))
+    c = network_curves(runs).get("dsigma_dgamma_reverse") if runs else None
+    curve = None if c is None else dict(x=np.asarray(c["x"], float),
+                                        values=np.atleast_2d(np.asarray(c["values"], float)))
+    return dict(folder=folder, samples=rows, curve=curve, C_curve=curve_C(curve),
+                provenance=prov)
+
+
+# ---------------------------------------------------------------------------------------
+# sample tables
+# ---------------------------------------------------------------------------------------
+def export_samples(ens: dict, path: str) -> None:
+    """Write the sample table of ``ens`` (:func:`read_ensemble`) to ``path``: kind
+    :data:`SAMPLES_KIND`, version :data:`SAMPLES_VERSION`, the folder's base name
+    (``source``), ``provenance``, one row per sample (:data:`ROW_KEYS`) and
+    ``reverse_curve`` (dict(x, values): the grid and one row per sample, in the order of the
+    rows; null without a reversed leg).  JSON, written to a twin and renamed (never
+    half-written); NaN as null."""
+    curve = ens.get("curve")
+    if curve is not None:
+        curve = dict(x=np.asarray(curve["x"], float).tolist(),
+                     values=np.atleast_2d(np.asarray(curve["values"], float)).tolist())
+    doc = dict(kind=SAMPLES_KIND, version=SAMPLES_VERSION,
+               source=os.path.basename(os.path.normpath(ens["folder"])),
+               provenance=ens.get("provenance", {}),
+               samples=[{k: x[k] for k in ROW_KEYS} for x in ens["samples"]],
+               reverse_curve=curve)
+    atomic_json(path, _jsonable(doc), indent=1, allow_nan=False)
+
+
+def _floats(a) -> np.ndarray:
+    return np.array([math.nan if u is None else u for u in a], float)
+
+
+def load_samples(path: str) -> dict:
+    """An ensemble (as :func:`read_ensemble`, ``C_curve`` recomputed from the table's curve)
+    from a sample table written by :func:`export_samples`; ValueError naming the file if it
+    is not one."""
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable JSON sample table ({e})") from None
+    if not isinstance(doc, dict) or doc.get("kind") != SAMPLES_KIND:
+        raise ValueError(f"{path}: not a network sample table (kind "
+                         f"{doc.get('kind') if isinstance(doc, dict) else None!r})")
+    if doc.get("version") != SAMPLES_VERSION:
+        raise ValueError(f"{path}: sample table version {doc.get('version')!r}, this parflow "
+                         f"reads {SAMPLES_VERSION}")
+    rows = []
+    try:
+        for r in doc["samples"]:
+            missing = [k for k in ROW_KEYS if k not in r]
+            if missing:
+                raise ValueError(f"sample {r.get('sample')} lacks {', '.join(missing)}")
+            row = {k: int(r[k]) for k in ("sample", "seed", "steps", "N")}
+            row.update(status=str(r["status"]), has_spectrum=bool(r["has_spectrum"]))
+            row.update({k: math.nan if r[k] is None else float(r[k])
+                        for k in ("z", "dz") + QUANTITIES})
+            rows.append(row)
+        c = doc["reverse_curve"]
+        curve = None
+        if c is not None:
+            x = _floats(c["x"])
+            values = np.array([_floats(v) for v in c["values"]], float).reshape(-1, x.size)
+            if values.shape[0] != len(rows):
+                raise ValueError(f"its reverse_curve has {values.shape[0]} rows for "
+                                 f"{len(rows)} samples")
+            curve = dict(x=x, values=values)
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise ValueError(f"{path}: not a valid network sample table ({type(e).__name__}: "
+                         f"{e})") from None
+    return dict(folder=path, samples=rows, curve=curve, C_curve=curve_C(curve),
+                provenance=doc.get("provenance", {}))
+
+
+def _is_result_json(path: str) -> bool:
+    """Whether ``path`` holds a JSON object without a ``kind`` (no sample table of any kind:
+    e.g. the ``--json`` result of an analysis written beside the ensemble folders)."""
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "kind" not in doc
+
+
+def read_sources(paths) -> list[dict]:
+    """The ensembles under ``paths``: each ensemble folder read (:func:`read_ensemble`) and
+    each sample table loaded (:func:`load_samples`; ``post.ensemble.find_sources``).  A file
+    named as a PATH must be a sample table; of the ``.json`` files found in a folder
+    searched one level down, those without a ``kind`` (an analysis's ``--json`` result) are
+    passed over."""
+    ens = []
+    for p in paths:
+        folders, tables = find_sources([p], ".json")
+        ens += [read_ensemble(f) for f in folders]
+        ens += [load_samples(t) for t in tables if t == p or not _is_result_json(t)]
+    return ens
+
+
+def table_names(ens: list[dict]) -> list[str]:
+    """The file names (without ``.json``) of the sample tables of ``ens`` (ensembles with a
+    finished sample) in one export: ``dz0.2000_N4096`` (dz to 4 decimals, N), with ``gap_``
+    in front for a companion ensemble of spectra only (no finite C:
+    ``runs/ensemble_network_gap_*.toml``); when two would get the same name (parts of one dz
+    run with other seeds), each of them has its folder's base name added
+    (``dz0.2000_N4096_z3.8_seed4``), and a number (``_2``, ...) if that still collides."""
+    names = []
+    for e in ens:
+        s0 = e["samples"][0]
+        gap = not any(np.isfinite(s["C"]) for s in e["samples"])
+        names.append(f"{'gap_' if gap else ''}dz{s0['dz']:.4f}_N{int(s0['N'])}")
+    names = [f"{n}_{os.path.basename(os.path.normpath(e['folder']))}" if names.count(n) > 1
+             else n for n, e in zip(names, ens)]
+    seen: dict = {}
+    for i, n in enumerate(names):
+        seen[n] = seen.get(n, 0) + 1
+        if seen[n] > 1:
+            names[i] = f"{n}_{seen[n]}"
+    return names
+
+
+def export(paths, out_dir: str) -> list[str]:
+    """Write the sample table of every ensemble folder under ``paths`` with a finished
+    sample into ``out_dir``, named by :func:`table_names`; the files written."""
+    ens = [e for e in (read_ensemble(f) for f in find_sources(paths)[0]) if e["samples"]]
+    os.makedirs(out_dir, exist_ok=True)
+    written = []
+    for e, n in zip(ens, table_names(ens)):
+        path = os.path.join(out_dir, f"{n}.json")
+        export_samples(e, path)
+        written.append(path)
+    return written
 
 
 # ---------------------------------------------------------------------------------------
 # per dz
 # ---------------------------------------------------------------------------------------
+def pooled_curve_C(group: list[dict]) -> dict:
+    """:func:`curve_C` of the main ensembles ``group`` pooled: their ``curve`` values
+    concatenated when every one has a curve on the same grid; NaN (n = 0) when the grids
+    differ (each ensemble's grid spans its own networks' range of sigma, so separately run
+    ensembles almost never share one) or one has no curve.  One ensemble: its own C_curve."""
+    if len(group) == 1:
+        return dict(group[0].get("C_curve", NO_CURVE))
+    curves = [e.get("curve") for e in group]
+    if any(c is None for c in curves):
+        return dict(NO_CURVE)
+    x = np.asarray(curves[0]["x"], float)
+    if not all(np.array_equal(np.asarray(c["x"], float), x) for c in curves):
+        return dict(NO_CURVE)
+    return curve_C(dict(x=x, values=np.vstack([np.atleast_2d(c["values"]) for c in curves])))
+
+
 def combine(ensembles: list[dict]) -> list[dict]:
-    """One entry per (N, dz): the samples of the ensembles with spectrum-free runs, with
-    omega* filled in from a companion ensemble (same N, dz) whose sample of the same index
-    has the same seed (the same network).  Ensembles made only of spectra (the companions)
-    give an entry of their own only if no other ensemble has their (N, dz)."""
+    """One entry per (N, dz): the samples of the main ensembles (those with a finite C, i.e.
+    a reversed branch), pooled when there are several: they must be the same scene but for
+    its seed and share no sample seed (``post.ensemble.check_poolable``; ValueError naming
+    the two otherwise) -- more networks of a dz, run at another time with another ``seed``,
+    from run folders or sample tables.  omega* is filled in from a companion ensemble (same
+    N, dz) whose sample of the same index has the same seed (the same network).  Ensembles
+    made only of spectra (the companions) give an entry of their own only if no other
+    ensemble has their (N, dz) (then the first of them).  ``C_curve``:
+    :func:`pooled_curve_C` (NaN for a pool of ensembles whose curve grids differ)."""
     groups: dict = {}
     for e in ensembles:
         if not e["samples"]:
@@ -170,11 +354,14 @@ def combine(ensembles: list[dict]) -> list[dict]:
     for (N, dz), es in sorted(groups.items()):
         main = [e for e in es if any(np.isfinite(s["C"]) for s in e["samples"])]
         spec = [e for e in es if any(s["has_spectrum"] for s in e["samples"])]
-        base = main[0] if main else es[0]
-        samples = [dict(s) for s in base["samples"]]
-        sources = [base["folder"]]
+        if main:
+            check_poolable([(e["folder"], e.get("provenance", {}).get("scene", ""),
+                             [s["seed"] for s in e["samples"]]) for e in main])
+        base = main or es[:1]
+        samples = [dict(s) for e in base for s in e["samples"]]
+        sources = [e["folder"] for e in base]
         for e in spec:
-            if e is base:
+            if any(e is b for b in base):
                 continue
             by = {s["sample"]: s for s in e["samples"]}
             used = False
@@ -186,8 +373,8 @@ def combine(ensembles: list[dict]) -> list[dict]:
                     used = True
             if used:
                 sources.append(e["folder"])
-        out.append(dict(N=N, dz=dz, z=base["samples"][0]["z"], folders=sources, samples=samples,
-                        C_curve=base.get("C_curve", dict(mean=np.nan, sem=np.nan, n=0))))
+        out.append(dict(N=N, dz=dz, z=base[0]["samples"][0]["z"], folders=sources,
+                        samples=samples, C_curve=pooled_curve_C(base)))
     return out
 
 
@@ -199,7 +386,7 @@ def per_dz(entry: dict) -> dict:
         v = np.array([s[q] for s in entry["samples"]], float)
         m, e, n = mean_sem(v)
         out[q] = dict(mean=float(m), sem=float(e), n=int(n), values=v.tolist())
-    out["C_curve"] = dict(entry.get("C_curve", dict(mean=np.nan, sem=np.nan, n=0)))
+    out["C_curve"] = dict(entry.get("C_curve", NO_CURVE))
     return out
 
 
@@ -277,9 +464,9 @@ def across(table: list[dict], n_boot: int = N_BOOT) -> dict:
 
 
 def analyse(paths, n_boot: int = N_BOOT) -> dict:
-    """The ensembles under ``paths``: the per-(N, dz) table and the fits across dz."""
-    ens = [read_ensemble(f) for f in find_sources(paths)[0]]
-    table = [per_dz(e) for e in combine(ens)]
+    """The ensembles under ``paths`` (folders and sample tables: :func:`read_sources`): the
+    per-(N, dz) table (:func:`combine`, :func:`per_dz`) and the fits across dz."""
+    table = [per_dz(e) for e in combine(read_sources(paths))]
     return dict(table=table, across=across(table, n_boot), lc_sigma=list(LC_SIGMA))
 
 
@@ -377,7 +564,7 @@ def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str
 def main(argv=None) -> int:
     return run_cli(argv, "python -m parflow.post.network_across_ensembles",
                    "C, C2, omega*, l_c per dz over network ensembles, and their power laws in dz",
-                   analyse, format_table, "no network ensemble found")
+                   analyse, format_table, "no network ensemble found", export=export)
 
 
 if __name__ == "__main__":
