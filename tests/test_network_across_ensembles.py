@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from parflow.post import network_across_ensembles as nae
+from parflow.post.ensemble import GRID_POINTS, on_grid
 from parflow.post.network import fit_omega_star
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -333,15 +334,23 @@ def test_table_names_tell_apart_companions_and_parts():
         "dz0.2000_N64_z3.8", "dz0.2000_N64_z3.8_2"]
 
 
-def test_pooled_curve_C_needs_one_grid():
+def test_pooled_curve_C_on_one_grid():
     shear, _ = _synthetic_pair()
     other = dict(shear, curve=dict(x=shear["curve"]["x"], values=shear["curve"]["values"][:2]))
     got = nae.pooled_curve_C([shear, other])
     both = np.vstack([shear["curve"]["values"], shear["curve"]["values"][:2]])
     assert got == nae.curve_C(dict(x=shear["curve"]["x"], values=both)) and got["n"] == 5
-    moved = dict(shear, curve=dict(x=shear["curve"]["x"] * 1.001, values=shear["curve"]["values"]))
-    assert math.isnan(nae.pooled_curve_C([shear, moved])["mean"])
-    assert nae.pooled_curve_C([shear, moved])["n"] == 0
+    # another grid: every network's curve interpolated in log-log onto one geometric grid
+    x = np.asarray(shear["curve"]["x"], float)
+    moved = dict(shear, curve=dict(x=x * 1.001, values=shear["curve"]["values"]))
+    got = nae.pooled_curve_C([shear, moved])
+    grid = np.geomspace(x.min(), 1.001 * x.max(), GRID_POINTS)
+    rows = [on_grid(xx, v, grid, log=True) for xx in (x, 1.001 * x)
+            for v in np.atleast_2d(shear["curve"]["values"])]
+    assert got == nae.curve_C(dict(x=grid, values=np.array(rows)))
+    assert got["n"] == 2 * np.atleast_2d(shear["curve"]["values"]).shape[0]
+    assert math.isfinite(got["mean"]) and got["mean"] == pytest.approx(
+        nae.curve_C(shear["curve"])["mean"], rel=0.01)
     assert math.isnan(nae.pooled_curve_C([shear, dict(shear, curve=None)])["mean"])
 
 
@@ -413,11 +422,13 @@ def test_sample_tables_give_the_analysis_of_the_run_files(tiny, tmp_path, capsys
     # the folder and a table of other seeds pool the same way
     mixed = nae.analyse([str(tiny / "z3.8"), str(tmp_path / "more.json")], n_boot=0)
     assert _strip_folders(nae._jsonable(mixed)) == _strip_folders(nae._jsonable(pooled))
-    # another grid: the pooled C_curve is NaN, the per-network numbers still pool
+    # another grid: the curves pool on one grid (close to the same-grid value), the
+    # per-network numbers as before
     doc["reverse_curve"]["x"] = [u * 1.001 for u in doc["reverse_curve"]["x"]]
     (tmp_path / "moved.json").write_text(json.dumps(doc))
     moved = nae.analyse([table, str(tmp_path / "moved.json")], n_boot=0)["table"][0]
-    assert math.isnan(moved["C_curve"]["mean"]) and moved["C"]["n"] == 6
+    assert moved["C_curve"]["n"] == 6 and moved["C"]["n"] == 6
+    assert moved["C_curve"]["mean"] == pytest.approx(t["C_curve"]["mean"], rel=0.02)
     # another scene at the same dz is refused
     doc["provenance"]["scene"] = doc["provenance"]["scene"].replace("strain = 1.0", "strain = 0.9")
     assert "strain = 0.9" in doc["provenance"]["scene"]

@@ -57,8 +57,8 @@ analysis reads run folders and tables alike (:func:`read_sources`).  Main ensemb
 same (N, dz) are pooled into one entry when they are the same scene but for its seed and
 share no sample seed (:func:`combine`: more networks of a dz, run at another time), and
 refused otherwise; their ``C_curve`` is that of the concatenated curves when their grids are
-the same, else NaN (:func:`pooled_curve_C`).  Companion spectrum ensembles pair with the
-pooled samples by index and seed, as tables or folders.
+the same, else of the curves interpolated onto one grid (:func:`pooled_curve_C`).  Companion
+spectrum ensembles pair with the pooled samples by index and seed, as tables or folders.
 
 ``python -m parflow.post.network_across_ensembles PATH... [--json OUT] [--export DIR]``
 prints the table and the exponents; a PATH is an ensemble folder, a sample table, or a
@@ -84,6 +84,7 @@ from .ensemble import (check_poolable, finished_samples, find_sources, jackknife
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
+from .pool import pool_curves
 
 HIGH_SIGMA = (1e4, 1e5)           # C_hi: the reversed-branch fit nearer jamming (N = 40 000:
 #                                   the law holds there and below 1e3, not across: networks.md)
@@ -319,18 +320,21 @@ def export(paths, out_dir: str) -> list[str]:
 # ---------------------------------------------------------------------------------------
 def pooled_curve_C(group: list[dict]) -> dict:
     """:func:`curve_C` of the main ensembles ``group`` pooled: their ``curve`` values
-    concatenated when every one has a curve on the same grid; NaN (n = 0) when the grids
-    differ (each ensemble's grid spans its own networks' range of sigma, so separately run
-    ensembles almost never share one) or one has no curve.  One ensemble: its own C_curve."""
+    concatenated when every one has its curve on the same grid, else each network's curve
+    interpolated in log-log onto one geometric grid over their joint range of sigma
+    (``post.pool.pool_curves``, as pooled summaries do: each ensemble's grid spans its own
+    networks' range, so separately run ensembles almost never share one); NaN (n = 0) when
+    one has no curve.  One ensemble: its own C_curve."""
     if len(group) == 1:
         return dict(group[0].get("C_curve", NO_CURVE))
     curves = [e.get("curve") for e in group]
     if any(c is None for c in curves):
         return dict(NO_CURVE)
-    x = np.asarray(curves[0]["x"], float)
-    if not all(np.array_equal(np.asarray(c["x"], float), x) for c in curves):
-        return dict(NO_CURVE)
-    return curve_C(dict(x=x, values=np.vstack([np.atleast_2d(c["values"]) for c in curves])))
+    rows = [np.atleast_2d(np.asarray(c["values"], float)) for c in curves]
+    pooled = pool_curves([dict(x=np.asarray(c["x"], float), values=v, xscale="log",
+                               yscale="log") for c, v in zip(curves, rows)],
+                         [v.shape[0] for v in rows])
+    return curve_C(None if pooled is None else dict(x=pooled["x"], values=pooled["values"]))
 
 
 def combine(ensembles: list[dict]) -> list[dict]:
@@ -342,7 +346,7 @@ def combine(ensembles: list[dict]) -> list[dict]:
     N, dz) whose sample of the same index has the same seed (the same network).  Ensembles
     made only of spectra (the companions) give an entry of their own only if no other
     ensemble has their (N, dz) (then the first of them).  ``C_curve``:
-    :func:`pooled_curve_C` (NaN for a pool of ensembles whose curve grids differ)."""
+    :func:`pooled_curve_C` (the curves on one grid)."""
     groups: dict = {}
     for e in ensembles:
         if not e["samples"]:
