@@ -246,6 +246,13 @@ def test_sample_tables_give_the_analysis_of_the_run_files(tiny, tmp_path, capsys
     prov = e["provenance"]
     assert len(prov["samples"]) == 3 and "[model]" in prov["scene"]
     assert all(p["created"] for p in prov["samples"])
+    # the --json result written beside the tables is passed over when the folder is
+    # searched (the docs write it there), and refused when named
+    assert sae.main([str(tables), "--boot", "0", "--json", str(tables / "across.json")]) == 0
+    assert [t["n_samples"] for t in sae.analyse([str(tables)], n_boot=0)["table"]] == [3, 3]
+    capsys.readouterr()
+    assert sae.main([str(tables / "across.json")]) == 2
+    assert "not a suspension sample table" in capsys.readouterr().err
     # one phi from its run files, the other from its table
     mixed = sae.analyse([str(tiny / "phi0.78"), str(tables / names[1])], n_boot=0)
     assert [t["phi"] for t in mixed["table"]] == pytest.approx([0.78, 0.80])

@@ -30,6 +30,7 @@ standard deviation, ddof = 1; NaN for n < 2) and the count n.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import re
@@ -116,21 +117,38 @@ def is_ensemble(folder: str) -> bool:
 
 def find_sources(paths, suffix: str | None = None) -> tuple[list[str], list[str]]:
     """(ensemble folders, files named ``*suffix``) among ``paths`` and, for a folder that is
-    not an ensemble, among its entries (sorted); no files without ``suffix``."""
+    not an ensemble, among its entries (sorted); no files without ``suffix``.  Of the
+    ``.json`` files found in a folder (not named as a path), those that hold a JSON object
+    without a ``kind`` -- no sample table of any model: e.g. the ``--json`` result of an
+    analysis written beside the ensemble folders -- are passed over; a file named as a path
+    is always returned (and must then be a table)."""
     folders, files = [], []
 
-    def take(p):
+    def take(p, named):
         if is_ensemble(p):
             folders.append(p)
         elif suffix is not None and p.endswith(suffix) and os.path.isfile(p):
-            files.append(p)
+            if named or not _is_result_json(p):
+                files.append(p)
     for p in paths:
         if is_ensemble(p) or not os.path.isdir(p):
-            take(p)
+            take(p, True)
         else:
             for q in sorted(os.listdir(p)):
-                take(os.path.join(p, q))
+                take(os.path.join(p, q), False)
     return folders, files
+
+
+def _is_result_json(path: str) -> bool:
+    """Whether ``path`` holds a JSON object without a ``kind`` (see :func:`find_sources`)."""
+    if not path.endswith(".json"):
+        return False
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "kind" not in doc
 
 
 def check_poolable(sources) -> None:

@@ -255,29 +255,12 @@ def load_samples(path: str) -> dict:
                 provenance=doc.get("provenance", {}))
 
 
-def _is_result_json(path: str) -> bool:
-    """Whether ``path`` holds a JSON object without a ``kind`` (no sample table of any kind:
-    e.g. the ``--json`` result of an analysis written beside the ensemble folders)."""
-    try:
-        with open(path) as fh:
-            doc = json.load(fh)
-    except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and "kind" not in doc
-
-
 def read_sources(paths) -> list[dict]:
     """The ensembles under ``paths``: each ensemble folder read (:func:`read_ensemble`) and
-    each sample table loaded (:func:`load_samples`; ``post.ensemble.find_sources``).  A file
-    named as a PATH must be a sample table; of the ``.json`` files found in a folder
-    searched one level down, those without a ``kind`` (an analysis's ``--json`` result) are
-    passed over."""
-    ens = []
-    for p in paths:
-        folders, tables = find_sources([p], ".json")
-        ens += [read_ensemble(f) for f in folders]
-        ens += [load_samples(t) for t in tables if t == p or not _is_result_json(t)]
-    return ens
+    each sample table loaded (:func:`load_samples`; ``post.ensemble.find_sources``, which
+    passes over an analysis's ``--json`` result found in a searched folder)."""
+    folders, tables = find_sources(paths, ".json")
+    return [read_ensemble(f) for f in folders] + [load_samples(t) for t in tables]
 
 
 def table_names(ens: list[dict]) -> list[str]:
