@@ -254,6 +254,17 @@ def test_figures_draw_the_ensemble_means(tiny, tmp_path):
     assert np.any(np.isclose(ys, res["table"][0]["C"]["mean"], rtol=1e-12))
     fig = pne.reverse_figure(res)
     assert len(fig.axes) == 3 and fig.axes[0].lines
+    # the averaged branch is the summary's for a folder, and is drawn from tables too
+    from parflow.post.ensemble import read_summary
+    t = res["table"][0]
+    c = read_summary(os.path.join(t["folders"][0], "summary.h5"))["curves"]["dsigma_dgamma_reverse"]
+    for k in ("x", "mean", "sem", "count"):
+        np.testing.assert_allclose(t["reverse_curve"][k], c[k], rtol=1e-12, equal_nan=True)
+    nae.export([str(tiny)], str(tmp_path / "tables"))
+    again = pne.reverse_figure(nae.analyse([str(tmp_path / "tables")], n_boot=0))
+    assert len(again.axes[1].lines) == len(fig.axes[1].lines) >= 1
+    np.testing.assert_array_equal(again.axes[1].lines[0].get_ydata(), fig.axes[1].lines[0].get_ydata())
+    shutil.rmtree(tmp_path / "tables")
     assert pne.main([str(tiny), "--out", str(tmp_path)]) == 0
     assert sorted(os.listdir(tmp_path)) == ["network_ensembles_across.png",
                                             "network_ensembles_reverse.png"]

@@ -7,8 +7,10 @@
                                  power-law fit (exponent ± WLS error, bootstrap error) and
                                  the predicted slope;
 * ``network_ensembles_reverse``  the ensemble-averaged reversed branch |dsigma/dgamma|
-                                 against sigma (``summary.h5`` curve ``dsigma_dgamma_reverse``,
-                                 mean ± standard error where every sample counts), its local
+                                 against sigma (the networks' curves of the ensemble's
+                                 folders or tables, pooled as ``post.network_across_ensembles.
+                                 pooled_curve``: mean ± standard error where every network
+                                 counts), its local
                                  C = sigma^2 / <|dsigma/dgamma|>, and C dz^(1/2) (the curves
                                  coincide if C ~ dz^-1/2).
 
@@ -18,13 +20,11 @@
 from __future__ import annotations
 
 import math
-import os
 import sys
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..post.ensemble import read_summary
 from ..post.network import REVERSE_SIGMA
 from ..post.network_across_ensembles import LC_SIGMA, analyse, format_table
 from .base import across_ensembles_cli, new_figure, reference
@@ -88,7 +88,8 @@ def across_figure(res: dict) -> Figure:
 
 
 def reverse_figure(res: dict) -> Figure:
-    """The averaged reversed branches of the ensembles of ``res`` (their summary files):
+    """The averaged reversed branches of the ensembles of ``res`` (each entry's
+    ``reverse_curve``: the networks' curves of its folders or tables, pooled):
     <|dsigma/dgamma|> against sigma; the local C of the averaged branch, sigma^2 / <|dsigma/
     dgamma|> (flat where the sigma^2 law holds); the same times dz^(1/2) (the curves of all
     dz coincide if C ~ dz^-1/2)."""
@@ -97,13 +98,10 @@ def reverse_figure(res: dict) -> Figure:
     rows = sorted(res["table"], key=lambda t: (t["N"], t["dz"]))
     k = 0
     for t in rows:
-        path = os.path.join(t["folders"][0], "summary.h5")
-        if not os.path.isfile(path):
-            continue
-        c = read_summary(path)["curves"].get("dsigma_dgamma_reverse")
+        c = t.get("reverse_curve")
         if c is None:
             continue
-        x, m, e, n = c["x"], c["mean"], c["sem"], c["count"]
+        x, m, e, n = (np.asarray(c[k], float) for k in ("x", "mean", "sem", "count"))
         ok = np.isfinite(m) & (n == n.max()) & (m > 0)
         lo = np.where(m - e > 0, m - e, m * 0.5)
         col = f"C{k % 10}"

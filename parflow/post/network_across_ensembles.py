@@ -301,23 +301,42 @@ def export(paths, out_dir: str) -> list[str]:
 # ---------------------------------------------------------------------------------------
 # per dz
 # ---------------------------------------------------------------------------------------
-def pooled_curve_C(group: list[dict]) -> dict:
-    """:func:`curve_C` of the main ensembles ``group`` pooled: their ``curve`` values
-    concatenated when every one has its curve on the same grid, else each network's curve
-    interpolated in log-log onto one geometric grid over their joint range of sigma
-    (``post.pool.pool_curves``, as pooled summaries do: each ensemble's grid spans its own
-    networks' range, so separately run ensembles almost never share one); NaN (n = 0) when
-    one has no curve.  One ensemble: its own C_curve."""
-    if len(group) == 1:
-        return dict(group[0].get("C_curve", NO_CURVE))
+def pooled_curve(group: list[dict]) -> dict | None:
+    """The reversed-branch curve (x, values: one row per network) of the main ensembles
+    ``group`` pooled: their ``curve`` rows together when every one has its curve on the same
+    grid, else each network's curve interpolated in log-log onto one geometric grid over
+    their joint range of sigma (``post.pool.pool_curves``, as pooled summaries do: each
+    ensemble's grid spans its own networks' range, so separately run ensembles almost never
+    share one); None when one has no curve."""
     curves = [e.get("curve") for e in group]
-    if any(c is None for c in curves):
-        return dict(NO_CURVE)
+    if not curves or any(c is None for c in curves):
+        return None
+    if len(curves) == 1:
+        return curves[0]
     rows = [np.atleast_2d(np.asarray(c["values"], float)) for c in curves]
     pooled = pool_curves([dict(x=np.asarray(c["x"], float), values=v, xscale="log",
                                yscale="log") for c, v in zip(curves, rows)],
                          [v.shape[0] for v in rows])
-    return curve_C(None if pooled is None else dict(x=pooled["x"], values=pooled["values"]))
+    return None if pooled is None else dict(x=pooled["x"], values=pooled["values"])
+
+
+def pooled_curve_C(group: list[dict]) -> dict:
+    """:func:`curve_C` of :func:`pooled_curve` (NaN, n = 0, without a curve); one ensemble:
+    its own C_curve."""
+    if len(group) == 1:
+        return dict(group[0].get("C_curve", NO_CURVE))
+    return curve_C(pooled_curve(group))
+
+
+def curve_stats(curve: dict | None) -> dict | None:
+    """Mean, standard error and count of |dsigma/dgamma| over the networks at each point of a
+    (pooled) reversed-branch curve (``post.ensemble.mean_sem``: finite values only), for the
+    figure; None without a curve."""
+    if curve is None:
+        return None
+    m, e, n = mean_sem(np.atleast_2d(np.asarray(curve["values"], float)))
+    return dict(x=np.asarray(curve["x"], float).tolist(), mean=m.tolist(), sem=e.tolist(),
+                count=np.asarray(n, int).tolist())
 
 
 def combine(ensembles: list[dict]) -> list[dict]:
@@ -361,7 +380,8 @@ def combine(ensembles: list[dict]) -> list[dict]:
             if used:
                 sources.append(e["folder"])
         out.append(dict(N=N, dz=dz, z=base[0]["samples"][0]["z"], folders=sources,
-                        samples=samples, C_curve=pooled_curve_C(base)))
+                        samples=samples, C_curve=pooled_curve_C(base),
+                        curve=pooled_curve(base)))
     return out
 
 
@@ -374,6 +394,7 @@ def per_dz(entry: dict) -> dict:
         m, e, n = mean_sem(v)
         out[q] = dict(mean=float(m), sem=float(e), n=int(n), values=v.tolist())
     out["C_curve"] = dict(entry.get("C_curve", NO_CURVE))
+    out["reverse_curve"] = curve_stats(entry.get("curve"))
     return out
 
 
