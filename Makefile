@@ -23,7 +23,8 @@ NP          ?= 2
 SCENE       ?=
 ARGS        ?= --overwrite
 PYTEST_ARGS ?=
-TEST_JOBS   ?= $(shell nproc 2>/dev/null || echo 1)
+# the cores this process may use (nproc obeys OMP_NUM_THREADS, which scripts/env.sh sets to 1)
+TEST_JOBS   ?= $(shell env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc 2>/dev/null || echo 1)
 
 .PHONY: help setup test test-serial test-mpi run bench clean
 

@@ -111,6 +111,18 @@ def test_ci_entry_point_runs_the_readme_test_command():
     assert "deselected" in res.stdout, res.stdout
 
 
+def test_serial_tests_run_on_every_core_even_after_env_sh():
+    """make test-serial takes one test process per core it may use -- also when
+    scripts/env.sh (OMP_NUM_THREADS = 1, which nproc obeys) was sourced first."""
+    cores = len(os.sched_getaffinity(0))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env.pop("TEST_JOBS", None)
+    res = subprocess.run(["make", "-n", "--no-print-directory", "test-serial"], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert f"jobs={cores};" in res.stdout, res.stdout
+
+
 def test_git_commit_is_read_once_per_process(monkeypatch):
     """An ensemble's later samples record the commit the process started with, not a HEAD
     that moved while it ran (the code in memory is what was imported)."""
