@@ -151,6 +151,24 @@ def _is_result_json(path: str) -> bool:
     return isinstance(doc, dict) and "kind" not in doc
 
 
+def read_table(path: str, kind: str, version: int, what: str) -> dict:
+    """The JSON document of a sample table at ``path`` of ``kind`` and ``version``;
+    ValueError naming the file when it cannot be read, is of another kind (``what``: e.g.
+    "suspension sample table") or of another version."""
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable JSON sample table ({e})") from None
+    if not isinstance(doc, dict) or doc.get("kind") != kind:
+        raise ValueError(f"{path}: not a {what} (kind "
+                         f"{doc.get('kind') if isinstance(doc, dict) else None!r})")
+    if doc.get("version") != version:
+        raise ValueError(f"{path}: sample table version {doc.get('version')!r}, this parflow "
+                         f"reads {version}")
+    return doc
+
+
 def check_poolable(sources) -> None:
     """Sources (label, scene text, sample seeds) that may be pooled into one ensemble: the
     same scene apart from its seed, title, [ensemble] and [output] (:func:`scene_protocol`),

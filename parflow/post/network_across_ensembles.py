@@ -80,7 +80,7 @@ import numpy as np
 
 from ..io import atomic_json
 from .ensemble import (check_poolable, finished_samples, find_sources, jackknife, mean_sem,
-                       network_curves)
+                       network_curves, read_table)
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
@@ -217,17 +217,7 @@ def load_samples(path: str) -> dict:
     """An ensemble (as :func:`read_ensemble`, ``C_curve`` recomputed from the table's curve)
     from a sample table written by :func:`export_samples`; ValueError naming the file if it
     is not one."""
-    try:
-        with open(path) as fh:
-            doc = json.load(fh)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: not a readable JSON sample table ({e})") from None
-    if not isinstance(doc, dict) or doc.get("kind") != SAMPLES_KIND:
-        raise ValueError(f"{path}: not a network sample table (kind "
-                         f"{doc.get('kind') if isinstance(doc, dict) else None!r})")
-    if doc.get("version") != SAMPLES_VERSION:
-        raise ValueError(f"{path}: sample table version {doc.get('version')!r}, this parflow "
-                         f"reads {SAMPLES_VERSION}")
+    doc = read_table(path, SAMPLES_KIND, SAMPLES_VERSION, "network sample table")
     rows = []
     try:
         for r in doc["samples"]:

@@ -63,7 +63,6 @@ folder read into DIR (``phi0.8100_N4096.json``).  Figures:
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -71,7 +70,7 @@ import sys
 import numpy as np
 
 from .ensemble import (check_poolable, find_sources, finished_samples, jackknife, jamming_rate,
-                       mean_sem)
+                       mean_sem, read_table)
 from ..io import atomic_json
 from .fits import fit_power_law_err
 from .network_across_ensembles import _jsonable, run_cli
@@ -164,17 +163,7 @@ def export_samples(ens: dict, path: str) -> None:
 def load_samples(path: str) -> dict:
     """An ensemble (as :func:`read_ensemble`) from a sample table written by
     :func:`export_samples`; ValueError naming the file if it is not one."""
-    try:
-        with open(path) as fh:
-            doc = json.load(fh)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: not a readable JSON sample table ({e})") from None
-    if not isinstance(doc, dict) or doc.get("kind") != SAMPLES_KIND:
-        raise ValueError(f"{path}: not a suspension sample table (kind "
-                         f"{doc.get('kind') if isinstance(doc, dict) else None!r})")
-    if doc.get("version") != SAMPLES_VERSION:
-        raise ValueError(f"{path}: sample table version {doc.get('version')!r}, this parflow "
-                         f"reads {SAMPLES_VERSION}")
+    doc = read_table(path, SAMPLES_KIND, SAMPLES_VERSION, "suspension sample table")
     rows = []
     for r in doc.get("samples", []):
         missing = [k for k in ROW_KEYS + ("points",) if k not in r]
