@@ -151,6 +151,11 @@ def _is_result_json(path: str) -> bool:
     return isinstance(doc, dict) and "kind" not in doc
 
 
+def nan_floats(values) -> np.ndarray:
+    """A float array from a JSON list in which NaN was written as null."""
+    return np.array([math.nan if u is None else u for u in values], float)
+
+
 def read_table(path: str, kind: str, version: int, what: str) -> dict:
     """The JSON document of a sample table at ``path`` of ``kind`` and ``version``;
     ValueError naming the file when it cannot be read, is of another kind (``what``: e.g.

@@ -80,7 +80,7 @@ import numpy as np
 
 from ..io import atomic_json
 from .ensemble import (check_poolable, finished_samples, find_sources, jackknife, mean_sem,
-                       network_curves, read_table)
+                       nan_floats, network_curves, read_table)
 from .fits import fit_power_law_err, forward_rows
 from .network import (REVERSE_SIGMA, fit_omega_star, network_dz, network_fits,
                       network_reverse_fit, network_z)
@@ -209,10 +209,6 @@ def export_samples(ens: dict, path: str) -> None:
     atomic_json(path, _jsonable(doc), indent=1, allow_nan=False)
 
 
-def _floats(a) -> np.ndarray:
-    return np.array([math.nan if u is None else u for u in a], float)
-
-
 def load_samples(path: str) -> dict:
     """An ensemble (as :func:`read_ensemble`, ``C_curve`` recomputed from the table's curve)
     from a sample table written by :func:`export_samples`; ValueError naming the file if it
@@ -232,8 +228,8 @@ def load_samples(path: str) -> dict:
         c = doc["reverse_curve"]
         curve = None
         if c is not None:
-            x = _floats(c["x"])
-            values = np.array([_floats(v) for v in c["values"]], float).reshape(-1, x.size)
+            x = nan_floats(c["x"])
+            values = np.array([nan_floats(v) for v in c["values"]], float).reshape(-1, x.size)
             if values.shape[0] != len(rows):
                 raise ValueError(f"its reverse_curve has {values.shape[0]} rows for "
                                  f"{len(rows)} samples")
@@ -311,10 +307,8 @@ def pooled_curve(group: list[dict]) -> dict | None:
 
 
 def pooled_curve_C(group: list[dict]) -> dict:
-    """:func:`curve_C` of :func:`pooled_curve` (NaN, n = 0, without a curve); one ensemble:
-    its own C_curve."""
-    if len(group) == 1:
-        return dict(group[0].get("C_curve", NO_CURVE))
+    """:func:`curve_C` of :func:`pooled_curve` (NaN, n = 0, without a curve; for one
+    ensemble its own C_curve, which is curve_C of its curve)."""
     return curve_C(pooled_curve(group))
 
 
@@ -369,9 +363,9 @@ def combine(ensembles: list[dict]) -> list[dict]:
                     used = True
             if used:
                 sources.append(e["folder"])
+        curve = pooled_curve(base)
         out.append(dict(N=N, dz=dz, z=base[0]["samples"][0]["z"], folders=sources,
-                        samples=samples, C_curve=pooled_curve_C(base),
-                        curve=pooled_curve(base)))
+                        samples=samples, C_curve=curve_C(curve), curve=curve))
     return out
 
 

@@ -70,7 +70,7 @@ import sys
 import numpy as np
 
 from .ensemble import (check_poolable, find_sources, finished_samples, jackknife, jamming_rate,
-                       mean_sem, read_table)
+                       mean_sem, nan_floats, read_table)
 from ..io import atomic_json
 from .fits import fit_power_law_err
 from .network_across_ensembles import _jsonable, run_cli
@@ -172,8 +172,7 @@ def load_samples(path: str) -> dict:
         row = {k: r[k] for k in ("sample", "seed", "status", "steps", "N")}
         row.update({k: math.nan if r[k] is None else float(r[k])
                     for k in ("phi",) + QUANTITIES})
-        row["points"] = {k: tuple(np.array([math.nan if u is None else u for u in a], float)
-                                  for a in v) for k, v in r["points"].items()}
+        row["points"] = {k: tuple(nan_floats(a) for a in v) for k, v in r["points"].items()}
         rows.append(row)
     return dict(folder=path, samples=rows, provenance=doc.get("provenance", {}))
 
