@@ -156,8 +156,7 @@ class ActiveSolver:
             self.base = dict(mask=A.copy(), idx=idx, pos=pos, fac=fac, y0=y, slot={}, m=0,
                              C=np.zeros((idx.size, cap), order="F"),
                              Z=np.empty((idx.size, cap), order="F"),
-                             G=np.zeros((cap, cap)), g0=np.zeros(cap),
-                             nz=[np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)])
+                             G=np.zeros((cap, cap)), g0=np.zeros(cap), nz=[])
             info.factor_time += time.perf_counter() - t0
             x[idx] = y
             return x
@@ -203,23 +202,10 @@ class ActiveSolver:
         return y
 
     # ------------------------------------------------------------------ bordered update
-    def _rows(self, keys: np.ndarray, pos: np.ndarray):
-        """The rows ``keys`` of N restricted to the indices that ``pos`` numbers (pos[i] >= 0
-        for its members): (row number, position, value) triples, by slicing N's CSR arrays
-        (a column selection N[keys][:, idx] scans all of idx: ~0.5 ms a call at nc ~ 8 000)."""
-        N = self.N
-        a, b = N.indptr[keys], N.indptr[keys + 1]
-        cnt = b - a
-        take = np.repeat(a - np.cumsum(np.concatenate([[0], cnt[:-1]])), cnt) + np.arange(cnt.sum())
-        row = np.repeat(np.arange(keys.size), cnt)
-        p = pos[N.indices[take]]
-        keep = p >= 0
-        return row[keep], p[keep], N.data[take][keep]
-
     def _columns(self, keys: np.ndarray) -> np.ndarray | None:
         """Slots of the border keys (-1 - i for an index i of R, i for an index i of B) in
         the kept C0 = [C columns] and Z0 = N00^-1 C0 (base space); new ones are solved for
-        (one multi-right-hand-side solve, a plain solve for one) and G = C0^T Z0 extended."""
+        (one multi-right-hand-side solve) and G = C0^T Z0 extended."""
         bs = self.base
         slot = bs["slot"]
         new = np.array([k for k in keys.tolist() if k not in slot], np.int64)
@@ -229,37 +215,29 @@ class ActiveSolver:
                 return None
             C = bs["C"][:, m:m + new.size]
             isr = new < 0
-            jr = np.flatnonzero(isr)
-            rr = pos[-1 - new[isr]]
-            C[rr, jr] = -1.0
-            cols, rows, vals = [jr], [rr], [np.full(jr.size, -1.0)]
-            jb = np.flatnonzero(~isr)
-            if jb.size:
-                r, p, v = self._rows(new[~isr], pos)
-                C[p, jb[r]] = v
-                cols.append(jb[r])
-                rows.append(p)
-                vals.append(v)
-            if new.size == 1:
-                Zn = bs["fac"].solve(np.ascontiguousarray(C[:, 0]))
-                Zn = None if Zn is None else Zn[:, None]
-            else:
-                Zn = bs["fac"].solve(C)
+            C[pos[-1 - new[isr]], np.flatnonzero(isr)] = -1.0
+            nz = [None] * new.size
+            for j in np.flatnonzero(isr).tolist():
+                nz[j] = (np.array([pos[-1 - new[j]]]), np.array([-1.0]))
+            if np.any(~isr):
+                Nb = self.N[new[~isr]][:, idx].tocsr()
+                C[:, ~isr] = Nb.toarray().T
+                for r, j in enumerate(np.flatnonzero(~isr).tolist()):
+                    a, b = Nb.indptr[r], Nb.indptr[r + 1]
+                    nz[j] = (Nb.indices[a:b], Nb.data[a:b])
+            Zn = bs["fac"].solve(C)
             if Zn is None:
                 return None
             bs["Z"][:, m:m + new.size] = Zn
             m2 = m + new.size
             # G = C0^T N00^-1 C0 is symmetric: the new columns and their mirror (C0 is
-            # sparse: ~10 nonzeros a column, kept as (column, row, value) triples)
-            bs["nz"] = [np.concatenate([bs["nz"][0], m + np.concatenate(cols)]),
-                        np.concatenate([bs["nz"][1]] + rows),
-                        np.concatenate([bs["nz"][2]] + vals)]
-            cc, rr, vv = bs["nz"]
-            if new.size <= 4:
-                Gn = np.column_stack([np.bincount(cc, weights=vv * Zn[rr, c], minlength=m2)
-                                      for c in range(new.size)])
-            else:
-                Gn = sp.coo_matrix((vv, (cc, rr)), shape=(m2, idx.size)).tocsr() @ Zn
+            # sparse: ~10 nonzeros a column)
+            bs["nz"].extend(nz)
+            rows = [r for r, _ in bs["nz"]]
+            CT = sp.csr_matrix((np.concatenate([v for _, v in bs["nz"]]), np.concatenate(rows),
+                                np.concatenate([[0], np.cumsum([r.size for r in rows])])),
+                               shape=(m2, idx.size))
+            Gn = CT @ Zn
             bs["G"][:m2, m:m2] = Gn
             bs["G"][m:m2, :m2] = Gn.T
             bs["g0"][m:m2] = C.T @ bs["y0"]
@@ -267,15 +245,6 @@ class ActiveSolver:
                 slot[key] = m + k
             bs["m"] = m2
         return np.array([slot[k] for k in keys.tolist()], np.int64)
-
-    def _block(self, B: np.ndarray) -> np.ndarray:
-        """N_BB, dense, for a few indices B (from N's CSR rows, as :meth:`_rows`)."""
-        pos = np.full(self.nc, -1, np.int64)
-        pos[B] = np.arange(B.size)
-        r, p, v = self._rows(B, pos)
-        out = np.zeros((B.size, B.size))
-        out[r, p] = v
-        return out
 
     def _apply(self, rhs: np.ndarray, v0: np.ndarray, Ctv0: np.ndarray, R, B, sl,
                lu) -> np.ndarray | None:
@@ -313,7 +282,7 @@ class ActiveSolver:
         nR = R.size
         Sig = -bs["G"][np.ix_(sl, sl)]
         if B.size:
-            Sig[nR:, nR:] += self._block(B)
+            Sig[nR:, nR:] += N[B][:, B].toarray()
         if not np.all(np.isfinite(Sig)):
             return None
         with warnings.catch_warnings():       # a singular Sig is detected below
