@@ -346,15 +346,18 @@ def test_table_names_tell_apart_companions_and_parts():
 
 
 def test_pooled_curve_C_on_one_grid():
+    def pooled_curve_C(group):
+        return nae.curve_C(nae.pooled_curve(group))
+
     shear, _ = _synthetic_pair()
     other = dict(shear, curve=dict(x=shear["curve"]["x"], values=shear["curve"]["values"][:2]))
-    got = nae.pooled_curve_C([shear, other])
+    got = pooled_curve_C([shear, other])
     both = np.vstack([shear["curve"]["values"], shear["curve"]["values"][:2]])
     assert got == nae.curve_C(dict(x=shear["curve"]["x"], values=both)) and got["n"] == 5
     # another grid: every network's curve interpolated in log-log onto one geometric grid
     x = np.asarray(shear["curve"]["x"], float)
     moved = dict(shear, curve=dict(x=x * 1.001, values=shear["curve"]["values"]))
-    got = nae.pooled_curve_C([shear, moved])
+    got = pooled_curve_C([shear, moved])
     grid = np.geomspace(x.min(), 1.001 * x.max(), GRID_POINTS)
     rows = [on_grid(xx, v, grid, log=True) for xx in (x, 1.001 * x)
             for v in np.atleast_2d(shear["curve"]["values"])]
@@ -362,7 +365,7 @@ def test_pooled_curve_C_on_one_grid():
     assert got["n"] == 2 * np.atleast_2d(shear["curve"]["values"]).shape[0]
     assert math.isfinite(got["mean"]) and got["mean"] == pytest.approx(
         nae.curve_C(shear["curve"])["mean"], rel=0.01)
-    assert math.isnan(nae.pooled_curve_C([shear, dict(shear, curve=None)])["mean"])
+    assert math.isnan(pooled_curve_C([shear, dict(shear, curve=None)])["mean"])
 
 
 def _one_line(capsys):

@@ -57,7 +57,8 @@ analysis reads run folders and tables alike (:func:`read_sources`).  Main ensemb
 same (N, dz) are pooled into one entry when they are the same scene but for its seed and
 share no sample seed (:func:`combine`: more networks of a dz, run at another time), and
 refused otherwise; their ``C_curve`` is that of the concatenated curves when their grids are
-the same, else of the curves interpolated onto one grid (:func:`pooled_curve_C`).  Companion
+the same, else of the curves interpolated onto one grid (:func:`curve_C` of
+:func:`pooled_curve`).  Companion
 spectrum ensembles pair with the pooled samples by index and seed, as tables or folders.
 
 ``python -m parflow.post.network_across_ensembles PATH... [--json OUT] [--export DIR]``
@@ -306,12 +307,6 @@ def pooled_curve(group: list[dict]) -> dict | None:
     return None if pooled is None else dict(x=pooled["x"], values=pooled["values"])
 
 
-def pooled_curve_C(group: list[dict]) -> dict:
-    """:func:`curve_C` of :func:`pooled_curve` (NaN, n = 0, without a curve; for one
-    ensemble its own C_curve, which is curve_C of its curve)."""
-    return curve_C(pooled_curve(group))
-
-
 def curve_stats(curve: dict | None) -> dict | None:
     """Mean, standard error and count of |dsigma/dgamma| over the networks at each point of a
     (pooled) reversed-branch curve (``post.ensemble.mean_sem``: finite values only), for the
@@ -331,8 +326,8 @@ def combine(ensembles: list[dict]) -> list[dict]:
     from run folders or sample tables.  omega* is filled in from a companion ensemble (same
     N, dz) whose sample of the same index has the same seed (the same network).  Ensembles
     made only of spectra (the companions) give an entry of their own only if no other
-    ensemble has their (N, dz) (then the first of them).  ``C_curve``:
-    :func:`pooled_curve_C` (the curves on one grid)."""
+    ensemble has their (N, dz) (then the first of them).  ``C_curve``: :func:`curve_C` of
+    :func:`pooled_curve` (the curves on one grid)."""
     groups: dict = {}
     for e in ensembles:
         if not e["samples"]:
