@@ -122,6 +122,7 @@ class BondedSystem:
         self.n_stage_pcg = 0       # intermediate solves (stage_rtol) on the loaded factor
         self.n_stage_failed = 0    # ... that fell back to a factorisation
         self.pcg_iterations = 0    # PCG iterations of both kinds
+        self.n_refreshed = 0       # forces at a step's start evaluated again (heun.Stall)
 
     @property
     def omega(self) -> float:

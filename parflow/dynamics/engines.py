@@ -180,7 +180,9 @@ class BondedEngine:
         sysm = self.system
         return dict(n_factorisations=sysm.n_factor, n_reused_factor=sysm.n_reused,
                     n_reuse_failed=sysm.n_reuse_failed, n_stage_pcg=sysm.n_stage_pcg,
-                    n_stage_failed=sysm.n_stage_failed, pcg_iterations=sysm.pcg_iterations)
+                    n_stage_failed=sysm.n_stage_failed, pcg_iterations=sysm.pcg_iterations,
+                    n_suspect_solves=getattr(sysm.tau_solver, "n_suspect", 0),
+                    n_force_refreshed=sysm.n_refreshed)
 
     def destroy(self) -> None:
         if self._spec is not None:

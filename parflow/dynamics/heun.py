@@ -23,6 +23,11 @@ Step (Heun, second order, first-same-as-last):
     max_i |V_na,i| dg <= max_displacement.
 A step whose factorisation or projection fails is rejected and retried 4x smaller; when dg
 falls below min_dgamma the system has jammed (:class:`Jammed`).
+A step's error must shrink with the step (err ~ dg for a smooth flow).  When it does not --
+three rejections over a decade of dg with err down by less than 2x -- the force at the
+step's start is suspect (a bad solve, or a checkpoint that kept one): it is evaluated again
+once (:class:`Stall`) and the step retried from its first trial size; a Jammed raised after
+that says the error did not shrink.
 With stage_rtol > 0 the predictor's force is solved by PCG on the factor at the step's start
 (to that relative error of V_na), the projection's Newton steps likewise, and the step's last
 force is a fresh factorisation: one factorisation per accepted step (docs/solvers.md).
@@ -43,6 +48,28 @@ INTEGRATORS: dict = {}      # filled at the end of the module
 
 class Jammed(RuntimeError):
     """N became singular (or the constraints cannot be satisfied) within min_dgamma."""
+
+
+class Stall:
+    """Whether the error estimate of one step's rejected trials shrinks with the step."""
+
+    def __init__(self):
+        self.trials: list[tuple[float, float]] = []    # (dg, err) of the rejected trials
+        self.refreshed = False                         # F0 was evaluated again
+        self.note = ""
+
+    def stalled(self, dg: float, err: float) -> bool:
+        """Record a rejected trial; True (once per step) if the error has not shrunk."""
+        self.trials.append((dg, err))
+        (dg0, e0), (dg1, e1) = self.trials[0], self.trials[-1]
+        if self.refreshed or len(self.trials) < 3 or not (dg1 <= 0.1 * dg0 and e1 >= 0.5 * e0):
+            return False
+        self.refreshed = True
+        self.note = (f"; the error estimate did not shrink with the step (err {e0:.3g} at dg = "
+                     f"{dg0:.3g}, {e1:.3g} at {dg1:.3g}), and the step was retried with the "
+                     f"force at its start evaluated again")
+        self.trials = []
+        return True
 
 
 @dataclass
@@ -128,15 +155,23 @@ class Heun:
             dg = min(dg, self.c.max_displacement / vmax)
         return min(dg, self.c.max_dgamma)
 
-    def trial(self, F0, dg: float, dg_cap: float | None, gamma: float, rejected: int) -> float:
+    def trial(self, F0, dg: float, dg_cap: float | None, gamma: float, rejected: int,
+              stall: Stall | None = None) -> float:
         """The trial step: ``dg`` bounded (:meth:`bound`, ``dg_cap``); Jammed below min_dgamma."""
         dg = self.bound(F0, dg)
         if dg_cap is not None:
             dg = min(dg, dg_cap)
         if dg < self.c.min_dgamma:
             raise Jammed(f"step size fell below min_dgamma = {self.c.min_dgamma:g} at gamma = "
-                         f"{gamma:.12g} after {rejected} rejected steps: the system has jammed")
+                         f"{gamma:.12g} after {rejected} rejected steps: the system has jammed"
+                         + (stall.note if stall is not None else ""))
         return dg
+
+    def refresh(self, s, gamma, F0):
+        """The force at a step's start evaluated again (a fresh factorisation), when the
+        step's error does not shrink with the step (:class:`Stall`)."""
+        self.system.n_refreshed += 1
+        return self.system.evaluate(s, gamma, what="force at the step's start, again")
 
     def finish(self, s_new, gamma_new):
         """The end of every bonded step: ``s_new`` projected on the rod lengths (with the
@@ -156,8 +191,9 @@ class Heun:
         rejected = 0
         k0 = F0.ds
         nV0 = vnorm(F0.V_na)
+        stall, dg_first = Stall(), dg
         while True:
-            dg = self.trial(F0, dg, dg_cap, gamma, rejected)
+            dg = self.trial(F0, dg, dg_cap, gamma, rejected, stall)
             h = direction * dg
             try:
                 F1 = sysm.evaluate(s + h * k0, gamma + h, what="predictor", rtol=c.stage_rtol,
@@ -170,6 +206,10 @@ class Heun:
             err = vnorm(F1.V_na - F0.V_na) / scale if scale > 0 else 0.0
             if not np.isfinite(err) or err > c.tol:
                 rejected += 1
+                if np.isfinite(err) and stall.stalled(dg, err):
+                    F0 = self.refresh(s, gamma, F0)
+                    k0, nV0, dg = F0.ds, vnorm(F0.V_na), dg_first
+                    continue
                 dg *= max(0.2, 0.9 * c.tol / err) if np.isfinite(err) else 0.25
                 continue
             try:

@@ -44,7 +44,7 @@ import math
 import numpy as np
 
 from ..algebra.solvers import SingularOperator
-from .heun import INTEGRATORS, Heun, StepResult, vnorm
+from .heun import INTEGRATORS, Heun, Stall, StepResult, vnorm
 
 EPS_DAMP = 2.0 / 13.0        # damping of the Chebyshev polynomial (stability margin)
 SAFETY = 1.2                 # on the spectral-radius estimate
@@ -140,8 +140,9 @@ class RKC(Heun):
         c = self.c
         rejected = 0
         nV0 = vnorm(F0.V_na)
+        stall, dg_first = Stall(), dg
         while True:
-            dg = self.trial(F0, dg, dg_cap, gamma, rejected)
+            dg = self.trial(F0, dg, dg_cap, gamma, rejected, stall)
             if self.rho is None or self.since >= REFRESH or rejected or dg > 1.5 * self.rho_dg:
                 try:
                     self.rho = self.spectral_radius(s, gamma, F0)
@@ -169,6 +170,10 @@ class RKC(Heun):
                 # Fig. 2 chain 361 -> 425 trial steps; RKC is not for networks anyway,
                 # docs/benchmarks.md "Integrators on a network".)
                 self.boost = min(self.boost * 2.0, BOOST_MAX)
+                if np.isfinite(err) and stall.stalled(dg, err):
+                    F0 = self.refresh(s, gamma, F0)
+                    nV0, dg = vnorm(F0.V_na), dg_first
+                    continue
                 dg *= max(0.2, 0.8 * math.sqrt(c.tol / err)) if np.isfinite(err) and err > 0 else 0.25
                 continue
             try:
