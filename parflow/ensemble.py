@@ -41,7 +41,9 @@ here: the scene schema sits below the run.
 *Restart* (``--restart FOLDER``): a sample whose file says complete, jammed or budget, or that
 is recorded as failed, is skipped; one whose file says running or interrupted and holds a
 checkpoint continues from it (the run file's restart: bit-identical to an uninterrupted run);
-the others start afresh.
+the others start afresh.  With ``retry`` (``--retry``) a sample that stopped ``jammed`` or
+``failed`` is continued from its file's checkpoint instead (after a fix: the file then records
+``retried_after``, the status and message it had), or started afresh if it has none.
 """
 from __future__ import annotations
 
@@ -79,6 +81,7 @@ SEED_RULE = ("seed_k = SeedSequence(seed, spawn_key=(k,)).generate_state(1, uint
              "(numpy)")
 DONE = ("complete", "jammed", "budget")          # a finished sample
 FINAL = DONE + ("failed",)                       # skipped by a restart
+RETRY = ("jammed", "failed")                     # continued by a restart with retry
 COLLECTIVE_ERRORS = (InputError, SolveError, WriteError)   # raised on every rank at once
 
 
@@ -204,15 +207,16 @@ def _write_index(folder: str, attrs: dict, samples: int, records: dict, plan=Non
         f["cpu_seconds"] = np.array([float(r.get("cpu_seconds", np.nan)) for r in rows])
 
 
-def _sample_file_state(path: str, n_legs: int, model: str) -> str:
+def _sample_file_state(path: str, n_legs: int, model: str, retry: bool = False) -> str:
     """What a restart does with one sample file: 'skip' (finished), 'restart' (a checkpoint
-    to continue from) or 'new'."""
+    to continue from) or 'new'; with ``retry`` a file that stopped jammed or failed is
+    continued (or started afresh) too."""
     if not os.path.exists(path):
         return "new"
     try:
         with RunFile(path) as run:
             status = str(run.attrs.get("status", ""))
-            if status in FINAL:
+            if status in FINAL and not (retry and status in RETRY):
                 return "skip"
             if run.has_checkpoint:
                 check_checkpoint(run.h5, path, n_legs, model)
@@ -223,9 +227,9 @@ def _sample_file_state(path: str, n_legs: int, model: str) -> str:
 
 
 def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
-            restart: bool) -> list:
+            restart: bool, retry: bool = False) -> list:
     """Check the folder and write the index (world rank 0); the plan: one of 'new',
-    'restart', 'skip' per sample."""
+    'restart', 'skip' per sample (``retry``: the module's doc, *Restart*)."""
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise InputError(f"the ensemble's output {folder!r} is a file: an ensemble writes a "
                          f"folder (--output FOLDER)")
@@ -239,10 +243,12 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
         n_legs, model = len(scene["protocol"]["leg"]), scene["model"]["name"]
         plan = []
         for k in range(samples):
-            if recorded.get(k, {}).get("status") == "failed":
+            if recorded.get(k, {}).get("status") == "failed" and not retry:
                 plan.append("skip")
             else:
-                plan.append(_sample_file_state(sample_path(folder, k), n_legs, model))
+                plan.append(_sample_file_state(sample_path(folder, k), n_legs, model, retry))
+            if retry and plan[-1] != "skip" and k in recorded:
+                os.remove(os.path.join(_records_dir(folder), f"sample_{k:04d}.json"))
     else:
         if os.path.exists(index) or any(n.startswith("sample_") for n in
                                         (os.listdir(folder) if os.path.isdir(folder) else [])):
@@ -275,6 +281,13 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
         attrs["created"] = read_index(folder)["attrs"].get("created", attrs["created"])
     _write_index(folder, attrs, samples, read_records(folder) if restart else {}, plan)
     return plan
+
+
+def _stopped_as(path: str) -> str:
+    """'status: message' of a sample file that stopped jammed or failed ('' otherwise)."""
+    with RunFile(path) as run:
+        status = str(run.attrs.get("status", ""))
+        return f"{status}: {run.attrs.get('message', '')}" if status in RETRY else ""
 
 
 def _check_sample_files(scene: dict, samples: int, plan: list) -> None:
@@ -328,9 +341,13 @@ def run_sample(group, folder: str, k: int, mode: str, base: dict, cmdline, max_s
     the sample are the caller's."""
     path = sample_path(folder, k)
     seed = sample_seed(base["seed"], k)
+    attrs = dict(sample=k, sample_seed=seed)
     if mode == "restart":
         text, before = collective(group, _restart_scene_of, path)
         scene = apply_settings(load_scene(text, path), before)
+        stopped = collective(group, _stopped_as, path)
+        if stopped:                          # a retry (--retry): the file keeps why it stopped
+            attrs["retried_after"] = stopped
     else:
         scene = apply_settings(load_scene(sample_text(base["text"], seed, base["source"], k),
                                           base["source"]), base["settings"])
@@ -338,8 +355,7 @@ def run_sample(group, folder: str, k: int, mode: str, base: dict, cmdline, max_s
         collective(group, check_output_path, path, True)
     t0, c0 = time.monotonic(), time.process_time()
     status = Run(scene, group, path, quiet=quiet, cmdline_options=cmdline,
-                 restart=mode == "restart", max_steps=max_steps,
-                 file_attrs=dict(sample=k, sample_seed=seed)).execute()
+                 restart=mode == "restart", max_steps=max_steps, file_attrs=attrs).execute()
     return dict(sample=k, seed=seed, status=status, message="", steps=-1,
                 wall_seconds=time.monotonic() - t0, cpu_seconds=time.process_time() - c0)
 
@@ -390,7 +406,7 @@ class _Progress(threading.Thread):
 
 
 def run_ensemble(base: dict, folder: str, samples: int, rps: int, *, restart: bool,
-                 overwrite: bool, cmdline: set, max_steps, quiet: bool) -> int:
+                 overwrite: bool, cmdline: set, max_steps, quiet: bool, retry: bool = False) -> int:
     """Run the ensemble (collective on COMM_WORLD).  ``base``: the scene (``text``,
     ``seed``, ``source``, ``settings`` and the loaded scene as ``scene``).  Returns the exit
     status: 0 every sample finished, 1 one or more failed; raises KeyboardInterrupt /
@@ -400,7 +416,7 @@ def run_ensemble(base: dict, folder: str, samples: int, rps: int, *, restart: bo
     if w.getSize() % rps:
         raise InputError(f"ranks_per_sample = {rps} does not divide the job's {w.getSize()} "
                          f"ranks: run on a multiple of {rps} ranks")
-    plan = collective(w, prepare, folder, base["scene"], samples, rps, overwrite, restart)
+    plan = collective(w, prepare, folder, base["scene"], samples, rps, overwrite, restart, retry)
     group, g, n_groups = split_world(rps)
     leader = group.getRank() == 0
     todo = sum(p != "skip" for p in plan)

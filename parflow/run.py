@@ -142,7 +142,8 @@ class Run:
                 writer.set_attrs(status="running", restarted_at_step=clock.step,
                                  restarted=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                                  restart_git_commit=git_commit(),
-                                 scene_settings="\n".join(scene.get("settings", [])))
+                                 scene_settings="\n".join(scene.get("settings", [])),
+                                 **self.file_attrs)
         # rank 0 writes; a failure there (full disk) is one WriteError on every rank
         collective_write(comm, writer, start_file)
         log.info("%s: %s, %s, %d rank(s) (%s), solver %s%s", scene["model"]["name"],
@@ -151,6 +152,7 @@ class Run:
 
         status, message = "running", ""
         rows = [ck["n_rows"] if ck else 0]          # rows written (the checkpoint's n_rows)
+        row_step = [ck["step"] if ck else None]     # the step of the last row written
         checkpoint_due = Elapsed(steps=out["checkpoint_every"], seconds=60 * out["checkpoint_minutes"],
                                  start_step=clock.step)
         eta = EtaEstimate()
@@ -166,6 +168,7 @@ class Run:
             if writer:
                 writer.append(row)
             rows[0] += 1
+            row_step[0] = clock.step
 
         def analyse(obs):
             """The model's analyses at this instant, into /analysis/<step>."""
@@ -202,7 +205,9 @@ class Run:
         def failed(exc):
             """The run stops on ``exc``: rank 0 writes the status, the reason, a checkpoint
             at the last whole step (not after a second signal, nor when the file could not
-            be written: then only the status, if it fits) and removes the shadow file."""
+            be written: then only the status, if it fits; nor when ``exc`` came between a
+            step and its row -- the file's earlier checkpoint then stays the one to restart
+            from) and removes the shadow file."""
             nonlocal status, message
             stopped = isinstance(exc, (KeyboardInterrupt, Terminated))
             status = "interrupted" if stopped else "failed"
@@ -214,7 +219,7 @@ class Run:
                 message += " (second signal: stopped mid-step, no new checkpoint)"
             if writer:
                 full = isinstance(exc, WriteError)   # the data did not fit: the status may
-                if not (full or mid_step):
+                if not (full or mid_step) and row_step[0] == clock.step:
                     checkpoint()
                 lost = writer.close(data=not full, status=status, message=message, steps=clock.step,
                                     wall_seconds=time.monotonic() - t_start,

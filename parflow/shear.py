@@ -43,6 +43,9 @@ def parser() -> argparse.ArgumentParser:
                    "job (an ensemble, docs/ensembles.md; overrides ensemble.samples): the output "
                    "is a folder (--output FOLDER, default the scene's output.path without .h5); "
                    "--restart FOLDER continues it")
+    p.add_argument("--retry", action="store_true", help="with --restart FOLDER: continue the "
+                   "samples that stopped jammed or failed from their checkpoints too (after a "
+                   "fix; their files record retried_after)")
     p.add_argument("--ranks-per-sample", type=int, metavar="r", help="ranks of each sample's "
                    "group (overrides ensemble.ranks_per_sample; default 1)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the figures at the end")
@@ -149,6 +152,9 @@ def _run(args, petsc_args, PETSc) -> int:
         raise InputError("--samples must be a positive integer (at most 1000000)")
     if args.ranks_per_sample is not None and args.ranks_per_sample <= 0:
         raise InputError("--ranks-per-sample must be a positive integer")
+    if args.retry and not (args.restart and os.path.isdir(args.restart)):
+        raise InputError("--retry continues an ensemble's jammed or failed samples: give it "
+                         "with --restart FOLDER (a single run restarts with --restart FILE)")
     if args.restart and os.path.isdir(args.restart):
         return _ensemble(args, petsc_args, comm, None)
     if args.restart:
@@ -289,7 +295,7 @@ def _ensemble(args, petsc_args, comm, scene, source=None) -> int:
                 settings=settings, scene=scene)
     code = run_ensemble(base, folder, samples, rps, restart=bool(args.restart),
                         overwrite=args.overwrite, cmdline=cmdline, max_steps=args.max_steps,
-                        quiet=args.quiet)
+                        quiet=args.quiet, retry=args.retry)
     if not args.no_plots and comm.getRank() == 0:
         try:
             from .plot import make_ensemble_plots    # (matplotlib only when figures are drawn)

@@ -92,7 +92,8 @@ def scene(tmp_path, text=SCENE):
 
 
 # a restarted run's own record, and the solver's counters, which count the last session only
-RESTART = {"@restarted_at_step", "@n_factorisations", "@n_reused_factor", "@n_reuse_failed"}
+RESTART = {"@restarted_at_step", "@n_factorisations", "@n_reused_factor", "@n_reuse_failed",
+           "@retried_after"}
 
 
 def content(path, restarted=False) -> dict:
@@ -219,6 +220,37 @@ def test_failing_sample_does_not_stop_the_others(serial, tmp_path):
     assert res.returncode == 1 and "1 of 4 samples failed" in res.stderr
     with h5py.File(sample(folder, 1)) as f:
         assert f.attrs["status"] == "failed"
+    # --retry runs it again; it failed before its first checkpoint (step 10, between the
+    # step and its row: no checkpoint was written then), so it starts afresh
+    mtime0 = os.path.getmtime(sample(folder, 0))
+    res = shear("--restart", folder, "--retry", "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    assert os.path.getmtime(sample(folder, 0)) == mtime0
+    assert_same(sample(folder, 1), sample(serial, 1))
+    with h5py.File(folder / "ensemble.h5") as f:
+        assert list(f["status"].asstr()[()]) == ["complete"] * 4
+
+
+@serial_only
+def test_retry_continues_a_failed_sample_from_its_checkpoint(serial, tmp_path):
+    """Sample 1 fails at step 15, between the step and its row: the file keeps the checkpoint
+    of step 10 (not one of the half-done step 15).  --restart FOLDER --retry continues it
+    from there: the uninterrupted sample 1, bit for bit; the file says what it was retried
+    after."""
+    folder = tmp_path / "ens"
+    res = shear(scene(tmp_path), "--samples", 2, "--output", folder, "--quiet", "--no-plots",
+                hook=("fail", 1, 15))
+    assert res.returncode == 1, res.stderr
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "failed" and f["checkpoint"].attrs["step"] == 10
+    res = shear("--restart", folder, "--retry", "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    assert "starts afresh" not in res.stderr
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "complete" and f.attrs["restarted_at_step"] == 10
+        assert str(f.attrs["retried_after"]).startswith("failed: RuntimeError: injected failure")
+    for k in (0, 1):
+        assert_same(sample(folder, k), sample(serial, k), restarted=k == 1)
 
 
 @serial_only
@@ -393,6 +425,7 @@ def test_plot_folder(serial, tmp_path):
     (("--samples", 10**9), "--samples must be a positive integer (at most 1000000)"),
     (("--set", "ensemble.samples=-1"), "ensemble.samples = -1 is out of range"),
     (("--ranks-per-sample", 2), "--ranks-per-sample is for an ensemble"),
+    (("--retry",), "--retry continues an ensemble's jammed or failed samples"),
 ])
 @serial_only
 def test_bad_ensemble_arguments(tmp_path, args, fragment):
