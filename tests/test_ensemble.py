@@ -67,6 +67,15 @@ def hooked(self, dg):
             raise RuntimeError(f"injected failure of sample {target}")
         STOPS.handle(2)          # as if SIGTERM arrived during this step
 P.Clock.advance = hooked
+if mode == "idle-stop":          # world rank `target` takes a SIGTERM while it waits idle
+    from mpi4py import MPI
+    barrier, taken = E.idle_barrier, []
+    def idle(comm, *a, **kw):
+        if MPI.COMM_WORLD.Get_rank() == target and not taken:
+            taken.append(1)
+            STOPS.handle(2)
+        return barrier(comm, *a, **kw)
+    E.idle_barrier = idle
 import parflow.shear
 sys.exit(parflow.shear.main(sys.argv[4:]))
 """
@@ -278,6 +287,19 @@ def test_interrupted_ensemble_restarts(serial, tmp_path, mpi):
         assert_same(sample(folder, k), sample(serial, k), restarted=k == 1)
     with h5py.File(folder / "ensemble.h5") as f:
         assert list(f["status"].asstr()[()]) == ["complete"] * 4
+
+
+@serial_only
+def test_a_signal_on_an_idle_rank_waits_for_the_running_group(serial, tmp_path):
+    """One sample on two ranks: rank 1's group has none and waits; a SIGTERM there is held
+    until rank 0's group has finished its sample (which it does, unharmed: equal to the
+    serial sample 0); then the job stops with exit 143 and one line -- no MPI_Abort."""
+    folder = tmp_path / "ens"
+    res = shear(scene(tmp_path), "--samples", 1, "--output", folder, "--quiet", "--no-plots",
+                mpi=2, hook=("idle-stop", 1, 1))
+    assert res.returncode == 143, res.stderr
+    assert "MPI_ABORT" not in res.stderr and res.stderr.count("parflow.shear: terminated") == 1, res.stderr
+    assert_same(sample(folder, 0), sample(serial, 0))
 
 
 @serial_only
