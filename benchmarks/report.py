@@ -481,6 +481,29 @@ def stiff_section(d):
     return out + [""]
 
 
+def chain_solver_section(d):
+    sc, sm = d["scene"], d["summary"]
+    out = ["## The chain's force solve: CHOLMOD against PETSc's Cholesky (`bench_chain_solver.py`)", "",
+           f"The μ = {sc['mu']}, N = {sc['N']:,} chain ({sc['integrator']}, seed {sc['seed']}) forward "
+           f"to ⟨V²⟩ = {sc['V2_above']:g}, with the default CHOLMOD factorisation and with "
+           "`-tau_pc_factor_mat_solver_type petsc` (natural ordering: the factor of the cyclic "
+           "tridiagonal N fills only its last row), in interleaved pairs; wall = the run's own "
+           "(no start-up).", "",
+           "| pair | CHOLMOD (s) | PETSc (s) | ratio | same steps | max rel. diff of ⟨V²⟩ |",
+           "|---|---|---|---|---|---|"]
+    walls = {(r["pair"], r["package"]): r for r in d["runs"]}
+    for p in d["pairs"]:
+        a, b = walls[(p["pair"], "cholmod")], walls[(p["pair"], "petsc")]
+        out.append(f"| {p['pair']} | {a['wall_seconds']:.2f} | {b['wall_seconds']:.2f} | "
+                   f"{p['speedup']:.3f} | {p['same_steps']} | {p['V2_max_rel_diff']:.1e} |")
+    r0 = d["runs"][0]
+    out += ["", f"{r0['steps']} steps, {r0['factorisations']} factorisations a run.  Mean "
+            f"{sm['mean_wall']['cholmod']:.2f} s against {sm['mean_wall']['petsc']:.2f} s, "
+            f"{sm['pairs_in_petsc_favour']} of {len(d['pairs'])} pairs in PETSc's favour, mean "
+            f"ratio {sm['mean_speedup']:.3f}.  Not the default (docs/solvers.md).", ""]
+    return out
+
+
 def ensemble_section(d):
     one, two, par, cm = d["one_sample"], d["serial_two"], d["two_ranks_two"], d["cpu_model"]
     loadavg = ", ".join(f"{x:.1f}" for x in d["machine"]["load_before"])
@@ -599,6 +622,7 @@ def main():
                      ("network_control_N4096", network_control_section),
                      ("network_shear", network_shear_section), ("flush", flush_section),
                      ("stiff", stiff_section), ("departure", departure_section),
+                     ("chain_solver", chain_solver_section),
                      ("ensemble", ensemble_section),
                      ("deflated", deflated_section),
                      ("deflated_scaling", deflated_scaling_section),
