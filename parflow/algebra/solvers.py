@@ -32,9 +32,9 @@ import scipy.sparse.linalg as spla
 from petsc4py import PETSc
 
 from ..errors import InputError, collective
+from ..schema import key
 
 log = logging.getLogger("parflow")
-from ..schema import key
 
 PRESETS = {
     # name: (refinement steps allowed, relative residual that triggers refinement)
@@ -46,7 +46,8 @@ PRESETS = {
 }
 BACKWARD_ERROR_FAIL = 1e-8
 SUSPECT_BERR = 1e-12      # a solve above this after its refinements is refined / refactorised
-EXTRA_REFINE = 4          # further refinements of such a solve, while each gains 10x
+EXTRA_REFINE = 4          # further refinements of such a solve, while each gains 10x,
+ROUNDOFF_BERR = 1e-15     # until this
 
 
 class SolveError(RuntimeError):
@@ -371,11 +372,12 @@ class CholeskySolver:
         refinement): the preconditioner of an outer iteration that checks its own residual."""
         self._ksp_solve(rhs, x, what)
 
-    def _refine(self, rhs, x, what, max_refine: int, refined: int = 0):
+    def _refine(self, rhs, x, what, max_refine: int, refined: int = 0, extra: bool = False):
         """Iterative refinement of x (rhs - A x solved with the current factor) until the
-        relative residual is below the preset's refine_above, ``max_refine`` steps were
-        taken in all (counting the ``refined`` ones before), or -- past the preset's own
-        steps -- a step gains less than 10x in backward error; (rel, berr, refinements)."""
+        relative residual is below the preset's refine_above or ``max_refine`` steps were
+        taken in all (counting the ``refined`` ones before); ``extra`` (a suspect solve):
+        until the backward error reaches ROUNDOFF_BERR, ``max_refine``, or a step gains less
+        than 10x (that step undone).  (rel, berr, refinements)."""
         best = None
         while True:
             self.A.mult(x, self.r)
@@ -383,13 +385,15 @@ class CholeskySolver:
             nr, nb, nx = vec_norms(self.r, rhs, x)
             rel = nr / nb if nb > 0 else nr
             berr = backward_error(nr, nx, nb, self.norm_bound)
-            if best is not None and not berr < 0.1 * best[1]:
-                x.axpy(-1.0, self.dx)           # the last step did not help: undo it
-                return best[0], best[1], refined - 1
-            if rel <= self.preset["refine_above"] or refined >= max_refine:
+            if extra:
+                if best is not None and not berr < 0.1 * best[1]:
+                    x.axpy(-1.0, self.dx)       # the last step did not help: undo it
+                    return best[0], best[1], refined - 1
+                if berr <= ROUNDOFF_BERR or refined >= max_refine:
+                    return rel, berr, refined
+                best = (rel, berr)
+            elif rel <= self.preset["refine_above"] or refined >= max_refine:
                 return rel, berr, refined
-            if refined >= self.preset["max_refine"]:
-                best = (rel, berr)              # an extra step: kept only if it gains 10x
             self._ksp_solve(self.r, self.dx, what)
             x.axpy(1.0, self.dx)
             refined += 1
@@ -405,7 +409,7 @@ class CholeskySolver:
         if not berr <= SUSPECT_BERR:
             self.n_suspect += 1
             rel, berr, refinements = self._refine(rhs, x, what, refinements + EXTRA_REFINE,
-                                                  refinements)
+                                                  refinements, extra=True)
         if not berr <= SUSPECT_BERR:
             self.n_refactorised += 1
             kept = x.copy()
