@@ -29,13 +29,13 @@ N = 64
 
 
 def _synthetic(path, *, analysis=True, reverse=True, omega=True, model="chain",
-               gamma_c_attr=GC, noise=0.0, seed=0):
-    """A chain-like run: forward V2 = A x^-3, dtheta2 = B x^3, thetadot2 = C/x with
+               gamma_c_attr=GC, noise=0.0, seed=0, mu=0, p=3.0):
+    """A chain-like run: forward V2 = A x^-p, dtheta2 = B x^3, thetadot2 = C/x with
     x = GC - gamma (4 decades), then reverse V2 = a / (gamma_turn + x0 - gamma)."""
     rng = np.random.default_rng(seed)
     x = np.geomspace(GC, GC * 1e-4, 160)
     g_f = GC - x
-    V2_f = 1e-5 * x ** -3.0
+    V2_f = 1e-5 * x ** -p
     dth_f = 1e3 * x ** 3.0
     thd_f = 2.0 / x
     g_turn = g_f[-1]
@@ -70,7 +70,7 @@ def _synthetic(path, *, analysis=True, reverse=True, omega=True, model="chain",
     with h5py.File(path, "w") as f:
         f.attrs["format"] = "parflow-run-1"
         f.attrs["model"] = model
-        f.attrs["scene"] = (f'title = "synthetic"\n[model]\nname = "{model}"\nN = {N}\nmu = 0\n'
+        f.attrs["scene"] = (f'title = "synthetic"\n[model]\nname = "{model}"\nN = {N}\nmu = {mu}\n'
                             '[[protocol.leg]]\ndirection = "forward"\n')
         f.attrs["status"] = "complete"
         f.attrs["n_ranks"] = 1
@@ -145,6 +145,21 @@ def test_chain_fits_on_synthetic_run(tmp_path):
     assert abs(rev["tilde"]["V2"][0] + 1) < 0.05
     assert abs(fits["lengths"]["dtheta2^-1/2"][0] + 1.5) < 0.05
     assert post_report.format_fits(fits)                        # the CLI's summary lines
+
+
+def test_a_fitted_gamma_c_the_run_went_past_is_dropped(tmp_path):
+    """gamma_c fitted by linearising with the mean-field exponent (-5/3 for mu = 2) lands
+    before the end of a forward branch that diverges faster (here x^-4, as the mu = 2 chains
+    at N = 1e5 do): the run went past it, so it is no divergence point and not reported (a
+    sample's fit on such a gamma_c once gave an exponent of -0.002 on a 2e-8 window)."""
+    src = tmp_path / "run.h5"
+    _synthetic(src, mu=2, p=4.0, reverse=False)
+    run = plot.load_run(str(src))
+    g = run.ts["gamma"][run.ts["direction"] > 0]
+    assert post_fits.fit_divergence_point(g, run.ts["V2"][run.ts["direction"] > 0], -5 / 3) < g.max()
+    fits = post_chain.chain_fits(run)
+    assert "fit" not in fits["gamma_c"] and list(fits["forward"]) == ["attr"]
+    assert abs(fits["forward"]["attr"]["V2"][0] + 4) < 0.05
 
 
 def test_main_default_outdir_and_skips(tmp_path, capsys):

@@ -19,7 +19,9 @@ def chain_theory(mu: float) -> dict:
 def chain_fits(run) -> dict:
     """The chain's fitted numbers: gamma_c (attribute and fitted), forward exponents for each
     gamma_c, reverse exponent, exponents of l_corr, l_r and <dtheta^2>^(-1/2).  Keys absent
-    when their data are."""
+    when their data are; the fitted gamma_c is absent, too, when it lies at or before the
+    largest gamma the forward branch reached (linearised with the mean-field exponent, data
+    that diverge faster put it there)."""
     mu = float(run.param("mu", 0) or 0)
     th = chain_theory(mu)
     out: dict = dict(model="chain", mu=mu, theory=th)
@@ -35,7 +37,7 @@ def chain_fits(run) -> dict:
     if np.isfinite(run.model_attrs.get("gamma_c", np.nan)):
         gcs["attr"] = float(run.model_attrs["gamma_c"])
     gfit = fit_divergence_point(g, V2, th["V2"])
-    if np.isfinite(gfit):
+    if np.isfinite(gfit) and gfit > g.max():     # one the run went past is none
         gcs["fit"] = gfit
     out["gamma_c"] = gcs
     out["forward"] = {}
