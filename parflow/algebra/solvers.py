@@ -412,6 +412,7 @@ class CholeskySolver:
                                                   refinements, extra=True)
         if not berr <= SUSPECT_BERR:
             self.n_refactorised += 1
+            before = berr
             kept = x.copy()
             pc = self.ksp.getPC()
             pc.reset()                          # the factor is discarded: analysed and
@@ -426,10 +427,10 @@ class CholeskySolver:
             else:
                 kept.copy(x)
             kept.destroy()
-            log.warning("WARNING: %s%s: backward error %.1e after %d refinement(s)%s",
-                        self.prefix, f"solve ({what})" if what else "solve", berr, refinements,
-                        " with a fresh factorisation" if again[1] <= berr else
-                        "; a fresh factorisation did no better")
+            log.warning("WARNING: %s%s: backward error %.1e after %d refinement(s); a fresh "
+                        "factorisation gives %.1e%s", self.prefix,
+                        f"solve ({what})" if what else "solve", before, refinements, again[1],
+                        "" if again[1] <= berr else " (not better: the first result kept)")
         if not np.isfinite(berr) or berr > BACKWARD_ERROR_FAIL:
             raise SingularOperator(f"{self.prefix}solve ({what}): backward error {berr:.2e} after "
                                    f"{refinements} refinement(s); N is singular to working precision")
