@@ -62,11 +62,21 @@ E.run_sample = wrapped
 advance = P.Clock.advance
 def hooked(self, dg):
     advance(self, dg)
-    if current[0] == target and self.step == at:
+    if mode in ("fail", "stop") and current[0] == target and self.step == at:
         if mode == "fail":
             raise RuntimeError(f"injected failure of sample {target}")
         STOPS.handle(2)          # as if SIGTERM arrived during this step
 P.Clock.advance = hooked
+if mode == "jam":                # the engine's step raises Jammed (as at min_dgamma)
+    import parflow.dynamics.engines as EN
+    from parflow.dynamics.heun import Jammed
+    step, clock_steps = EN.BondedEngine.step, [0]
+    def jam_once(self, *a, **kw):
+        clock_steps[0] += current[0] == target
+        if current[0] == target and clock_steps[0] == at:
+            raise Jammed("injected jam")
+        return step(self, *a, **kw)
+    EN.BondedEngine.step = jam_once
 if mode == "idle-stop":          # world rank `target` takes a SIGTERM while it waits idle
     from mpi4py import MPI
     barrier, taken = E.idle_barrier, []
@@ -287,6 +297,32 @@ def test_interrupted_ensemble_restarts(serial, tmp_path, mpi):
         assert_same(sample(folder, k), sample(serial, k), restarted=k == 1)
     with h5py.File(folder / "ensemble.h5") as f:
         assert list(f["status"].asstr()[()]) == ["complete"] * 4
+
+
+@serial_only
+def test_retry_continues_a_jammed_sample(serial, tmp_path):
+    """Sample 1 stops "jammed" at its 15th step (injected; the run writes its checkpoint
+    there): a restart skips it, --retry continues it to the uninterrupted sample 1."""
+    folder = tmp_path / "ens"
+    res = shear(scene(tmp_path), "--samples", 2, "--output", folder, "--quiet", "--no-plots",
+                hook=("jam", 1, 15))
+    assert res.returncode == 0, res.stderr                 # jammed is a finished sample
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "jammed" and f["checkpoint"].attrs["step"] == 14
+    mtime = os.path.getmtime(sample(folder, 1))
+    assert shear("--restart", folder, "--quiet", "--no-plots").returncode == 0
+    assert os.path.getmtime(sample(folder, 1)) == mtime    # skipped without --retry
+    res = shear("--restart", folder, "--retry", "--quiet", "--no-plots")
+    assert res.returncode == 0, res.stderr
+    with h5py.File(sample(folder, 1)) as f:
+        assert f.attrs["status"] == "complete" and f.attrs["restarted_at_step"] == 14
+        assert str(f.attrs["retried_after"]) == "jammed: injected jam"
+    # the jammed run's analysis at its stop stays in the file: the rest is the serial run's
+    a, b = content(sample(folder, 1), True), content(sample(serial, 1), True)
+    extra = sorted(set(a) - set(b))
+    assert all(k.startswith("analysis/00000014") for k in extra), extra
+    for k in b:
+        assert np.array_equal(a[k], b[k]) or np.array_equal(a[k], b[k], equal_nan=True), k
 
 
 @serial_only
