@@ -104,3 +104,28 @@ def test_a_step_from_a_bad_start_force_re_evaluates_it(method):
         d = np.abs(res.s - good.s).max() if res.gamma == good.gamma else 0.0
         assert d < 1e-6
     sysm.destroy()
+
+
+def test_cholmod_factor_is_rebuilt_before_its_mark_overflows(monkeypatch):
+    """CHOLMOD's workspace mark grows by n with each numeric factorisation and the one that
+    passes 2^31 comes out wrong (measured at n = 1e5: the 21 475th); CholeskySolver rebuilds
+    the factor before CHOLMOD_MARK_LIMIT rows.  With the limit lowered to 10 factorisations'
+    worth, 25 refactorisations rebuild it twice, every solve still exact; another package
+    (PETSc's own Cholesky) is left alone."""
+    import parflow.algebra.solvers as S
+    monkeypatch.setattr(S, "CHOLMOD_MARK_LIMIT", 10 * 300)
+    for package, rebuilt in (("cholmod", 2), ("petsc", 0)):
+        A = spd(300, seed=3)
+        PETSc.Options().setValue(f"tmark_{package}_pc_factor_mat_solver_type", package)
+        M, solver = solver_on_own_arrays(A, f"tmark_{package}_")
+        assert solver.package == package
+        b = np.random.default_rng(4).standard_normal(300)
+        for k in range(25):
+            A.data *= 1.01                       # in place: the Mat is told by assemble()
+            M.assemble()
+            x, info = solve(solver, M, b)
+            assert info.backward_error < 1e-15
+            assert np.linalg.norm(A @ x - b) <= 1e-12 * np.linalg.norm(b)
+        assert solver.n_rebuilt == rebuilt, package
+        solver.destroy()
+        M.destroy()

@@ -11,8 +11,9 @@ A solve whose backward error after the preset's refinements is far above round-o
 (> SUSPECT_BERR, where a sound factor gives ~3e-17) is not taken as it is: it is refined
 further and, if that does not bring it down, N is factorised afresh (symbolic and numeric)
 and solved again; the better result is kept and counted (``CholeskySolver.n_suspect``).
-Measured once in ~2e5 solves on a 1e5-rod chain: a solve left at 6.7e-9 by one refinement
-(below BACKWARD_ERROR_FAIL), which the same N, factorised again, solved to 3.1e-17.
+Measured on a 1e5-rod chain: a solve left at 6.7e-9 by one refinement (below
+BACKWARD_ERROR_FAIL), which the same N, factorised again, solved to 3.1e-17 -- a CHOLMOD
+factor refactorised until its rows passed 2^31 (CHOLMOD_MARK_LIMIT, below, now prevents it).
 
 Options: each solver has a prefix (``tau_``, ``proj_``, ``resp_``, ``spec_``).  Code defaults
 are set first, then ``setFromOptions()``, so any PETSc option given in the scene's ``[petsc]``
@@ -45,6 +46,15 @@ PRESETS = {
     "deflated": dict(max_refine=1, refine_above=1e-10),
 }
 BACKWARD_ERROR_FAIL = 1e-8
+# A CHOLMOD factor that PETSc refactorises again and again comes out wrong once the rows it
+# has factorised pass 2^31: measured on chains, the 21 475th refactorisation at n = 1e5
+# (21 475 x 1e5 = 2^31; backward error 1.6e-4, a fresh factor 4e-17) and the 42 950th at
+# n = 5e4 (2.0e-4) -- and the chain ensembles' bad solves came every ~6 500 steps (~21 500
+# factorisations) of a run.  The cause is guessed, not read in CHOLMOD's source: a 32-bit
+# overflow of its workspace mark (cholmod_common.mark grows by n a factorisation).  The
+# factor (with its cholmod_common) is rebuilt, analysed and factorised afresh, before
+# CHOLMOD_MARK_LIMIT rows: bit-identical results (the same order), one analysis per 2^30 rows.
+CHOLMOD_MARK_LIMIT = 2 ** 30
 SUSPECT_BERR = 1e-12      # a solve above this after its refinements is refined / refactorised
 EXTRA_REFINE = 4          # further refinements of such a solve, while each gains 10x,
 ROUNDOFF_BERR = 1e-15     # until this
@@ -329,6 +339,10 @@ class CholeskySolver:
         self.norm_bound = None
         self.n_suspect = 0        # solves left above SUSPECT_BERR by the preset's refinements
         self.n_refactorised = 0   # ... and still above it after EXTRA_REFINE more
+        self.n_rebuilt = 0        # factors rebuilt before CHOLMOD's mark overflows
+        self._state = None        # the Mat's state at the last factorisation
+        self._marks = 0           # rows factorised since the factor was built
+        self._cholmod = None      # whether the factor package is CHOLMOD (known at first use)
 
     @property
     def package(self) -> str:
@@ -352,7 +366,24 @@ class CholeskySolver:
         pc = self.ksp.getPC()
         return f"{self.ksp.getType()}+{pc.getType()}({self.package})"
 
+    def _fresh_factor(self) -> None:
+        """Discard the factor: the next solve analyses and factorises afresh."""
+        self.ksp.getPC().reset()
+        self.ksp.setOperators(self.A)
+        self._marks = 0
+
     def _ksp_solve(self, rhs, x, what):
+        state = self.A.stateGet()
+        if state != self._state:                 # this solve refactorises
+            self._state = state
+            if self._cholmod is None:
+                self._cholmod = self.package.endswith("cholmod")
+            if self._cholmod:
+                self._marks += self.A.getSize()[0]
+                if self._marks > CHOLMOD_MARK_LIMIT:    # CHOLMOD_MARK_LIMIT, above
+                    self._fresh_factor()
+                    self._marks = self.A.getSize()[0]
+                    self.n_rebuilt += 1
         try:
             self.ksp.solve(rhs, x)
         except PETSc.Error as exc:
@@ -412,11 +443,9 @@ class CholeskySolver:
                                                   refinements, extra=True)
         if not berr <= SUSPECT_BERR:
             self.n_refactorised += 1
-            before = berr
+            before, n_before = berr, refinements
             kept = x.copy()
-            pc = self.ksp.getPC()
-            pc.reset()                          # the factor is discarded: analysed and
-            self.ksp.setOperators(self.A)       # factorised again at the next solve
+            self._fresh_factor()                # analysed and factorised again
             try:
                 reason = self._ksp_solve(rhs, x, what + ", refactorised")
                 again = self._refine(rhs, x, what, self.preset["max_refine"])
@@ -429,7 +458,7 @@ class CholeskySolver:
             kept.destroy()
             log.warning("WARNING: %s%s: backward error %.1e after %d refinement(s); a fresh "
                         "factorisation gives %.1e%s", self.prefix,
-                        f"solve ({what})" if what else "solve", before, refinements, again[1],
+                        f"solve ({what})" if what else "solve", before, n_before, again[1],
                         "" if again[1] <= berr else " (not better: the first result kept)")
         if not np.isfinite(berr) or berr > BACKWARD_ERROR_FAIL:
             raise SingularOperator(f"{self.prefix}solve ({what}): backward error {berr:.2e} after "
