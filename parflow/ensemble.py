@@ -159,10 +159,13 @@ def read_records(folder: str) -> dict:
     return out
 
 
+def _record_path(folder: str, k: int) -> str:
+    return os.path.join(_records_dir(folder), f"sample_{k:04d}.json")
+
+
 def _write_record(folder: str, rec: dict) -> None:
-    d = _records_dir(folder)
-    os.makedirs(d, exist_ok=True)
-    atomic_json(os.path.join(d, f"sample_{rec['sample']:04d}.json"), rec)
+    os.makedirs(_records_dir(folder), exist_ok=True)
+    atomic_json(_record_path(folder, rec["sample"]), rec)
 
 
 def read_index(folder: str) -> dict:
@@ -248,7 +251,7 @@ def prepare(folder: str, scene: dict, samples: int, rps: int, overwrite: bool,
             else:
                 plan.append(_sample_file_state(sample_path(folder, k), n_legs, model, retry))
             if retry and plan[-1] != "skip" and k in recorded:
-                os.remove(os.path.join(_records_dir(folder), f"sample_{k:04d}.json"))
+                os.remove(_record_path(folder, k))
     else:
         if os.path.exists(index) or any(n.startswith("sample_") for n in
                                         (os.listdir(folder) if os.path.isdir(folder) else [])):

@@ -379,11 +379,11 @@ class CholeskySolver:
             if self._cholmod is None:
                 self._cholmod = self.package.endswith("cholmod")
             if self._cholmod:
-                self._marks += self.A.getSize()[0]
-                if self._marks > CHOLMOD_MARK_LIMIT:    # CHOLMOD_MARK_LIMIT, above
+                n = self.A.getSize()[0]
+                if self._marks + n > CHOLMOD_MARK_LIMIT:    # CHOLMOD_MARK_LIMIT, above
                     self._fresh_factor()
-                    self._marks = self.A.getSize()[0]
                     self.n_rebuilt += 1
+                self._marks += n
         try:
             self.ksp.solve(rhs, x)
         except PETSc.Error as exc:

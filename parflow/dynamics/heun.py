@@ -68,7 +68,6 @@ class Stall:
         self.note = (f"; the error estimate did not shrink with the step (err {e0:.3g} at dg = "
                      f"{dg0:.3g}, {e1:.3g} at {dg1:.3g}), and the step was retried with the "
                      f"force at its start evaluated again")
-        self.trials = []
         return True
 
 
@@ -167,7 +166,7 @@ class Heun:
                          + (stall.note if stall is not None else ""))
         return dg
 
-    def refresh(self, s, gamma, F0):
+    def refresh(self, s, gamma):
         """The force at a step's start evaluated again (a fresh factorisation), when the
         step's error does not shrink with the step (:class:`Stall`)."""
         self.system.n_refreshed += 1
@@ -207,7 +206,7 @@ class Heun:
             if not np.isfinite(err) or err > c.tol:
                 rejected += 1
                 if np.isfinite(err) and stall.stalled(dg, err):
-                    F0 = self.refresh(s, gamma, F0)
+                    F0 = self.refresh(s, gamma)
                     k0, nV0, dg = F0.ds, vnorm(F0.V_na), dg_first
                     continue
                 dg *= max(0.2, 0.9 * c.tol / err) if np.isfinite(err) else 0.25

@@ -171,7 +171,7 @@ class RKC(Heun):
                 # docs/benchmarks.md "Integrators on a network".)
                 self.boost = min(self.boost * 2.0, BOOST_MAX)
                 if np.isfinite(err) and stall.stalled(dg, err):
-                    F0 = self.refresh(s, gamma, F0)
+                    F0 = self.refresh(s, gamma)
                     nV0, dg = vnorm(F0.V_na), dg_first
                     continue
                 dg *= max(0.2, 0.8 * math.sqrt(c.tol / err)) if np.isfinite(err) and err > 0 else 0.25
