@@ -43,6 +43,12 @@ CASES = {
     "rkc": 'method = "rkc"\ntol = 0.05',
     "rkc_stages": 'method = "rkc"\ntol = 0.05\nstage_rtol = 1e-8',
     "rkc_2stages": 'method = "rkc"\ntol = 0.05\nmax_stages = 2',
+    # the linearly implicit ROS2 (dynamics.ros2): its stage equations by GMRES on the step's
+    # factor, its stage force by PCG on it
+    "ros2": 'method = "ros2"\ntol = 0.05',
+    "ros2_fast": 'method = "ros2"\ntol = 0.2',
+    "ros2_loose": 'method = "ros2"\ntol = 0.2\nkrylov_rtol = 1e-2',
+    "heun_fast": 'method = "heun"\ntol = 0.2\nmax_displacement = 0.2',
     "ref_heun": 'method = "heun"\ntol = 0.005\nmax_displacement = 0.005',
     "ref_rkc": 'method = "rkc"\ntol = 5e-4\nmax_displacement = 0.005\nstage_rtol = 1e-10',
     # tighter still, to see which reference has converged (not in the default --cases)
@@ -59,6 +65,13 @@ SPLIT_CASES = {
     "rkc_heun_3e5": ('method = "rkc"\ntol = 0.05', 3e5, 'method = "heun"'),
     "rkc_heun_1e3": ('method = "rkc"\ntol = 0.05', 1e3, 'method = "heun"'),
     "rkc_heun_1e5_stages": ('method = "rkc"\ntol = 0.05\nstage_rtol = 1e-8', 1e5, 'method = "heun"'),
+    # ROS2 toward jamming, Heun on the reversed leg (where the stiff modes grow: an L-stable
+    # step would damp them)
+    "ros2_heun": ('method = "ros2"\ntol = 0.05', 1e6, 'method = "heun"'),
+    "ros2_fast_heun": ('method = "ros2"\ntol = 0.2', 1e6, 'method = "heun"'),
+    "ros2_fast_heun_stages": ('method = "ros2"\ntol = 0.2', 1e6, 'method = "heun", stage_rtol = 1e-8'),
+    "ros2_fastd_heun": ('method = "ros2"\ntol = 0.2\nmax_displacement = 0.2', 1e6,
+                        'method = "heun", tol = 0.2, max_displacement = 0.2'),
 }
 for _name, (_scene, _split, _near) in SPLIT_CASES.items():
     CASES[_name] = f"{_scene}; to sigma = {_split:g}, then {_near}".replace("\n", "; ")
@@ -114,8 +127,9 @@ def run(folder, n, network, case):
     with h5py.File(path) as f:
         ts = f["timeseries"]
         d = {k: ts[k][:] for k in ("gamma", "sigma", "direction", "wall", "rejected", "strain")}
-        counters = {k: int(f.attrs[k]) for k in ("n_factorisations", "n_stage_pcg", "n_stage_failed",
-                                                  "pcg_iterations")}
+        counters = {k: int(f.attrs.get(k, 0)) for k in ("n_factorisations", "n_stage_pcg",
+                                                         "n_stage_failed", "pcg_iterations",
+                                                         "krylov_iterations")}
     fw = d["direction"] > 0
     row = dict(case=case, integrator=CASES[case].replace("\n", "; "), status=status,
                date=time.strftime("%Y-%m-%d %H:%M:%S"),

@@ -54,6 +54,7 @@ class RigidityOperators:
         self._i_all, self._j_all = i, j
         self._n, self._s_fresh = None, False
         self.values_stale = False
+        self.loaded_n = None       # the unit vectors whose values N holds (and its factor)
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
         comp = np.arange(d)
@@ -113,6 +114,7 @@ class RigidityOperators:
         """Set the values of N from the unit vectors n (Nc x d, all pairs).  S is refreshed
         lazily (``S_at``): the step loop needs only N and the numpy form of S^T."""
         self._n = n
+        self.loaded_n = n
         self._s_fresh = False
         self.values_stale = False
         if self._seq:

@@ -6,3 +6,4 @@
 """
 
 from . import rkc  # noqa: F401,E402  (registers the "rkc" integrator in heun.INTEGRATORS)
+from . import ros2  # noqa: F401,E402  (registers the "ros2" integrator)

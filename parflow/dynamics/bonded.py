@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..algebra.deflated import force_solver
 from ..algebra.operators import RigidityOperators
@@ -123,6 +124,9 @@ class BondedSystem:
         self.n_stage_failed = 0    # ... that fell back to a factorisation
         self.pcg_iterations = 0    # PCG iterations of both kinds
         self.n_refreshed = 0       # forces at a step's start evaluated again (heun.Stall)
+        self.n_jvp = 0             # Jacobian-vector products (a solve each; ros2's stages)
+        self.krylov_iterations = 0  # GMRES iterations of ros2's stage equations
+        self._pattern = None       # the fixed sparse patterns of linearised() (built on demand)
 
     @property
     def omega(self) -> float:
@@ -140,7 +144,8 @@ class BondedSystem:
         self.n_factor += 1
 
     def evaluate(self, s: np.ndarray, gamma: float, what: str = "force", reuse: bool = False,
-                 rtol: float = 0.0, guess: np.ndarray | None = None) -> Force:
+                 rtol: float = 0.0, guess: np.ndarray | None = None,
+                 max_it: int | None = None) -> Force:
         """Solve N tau = -b at configuration (s, gamma); leaves N loaded at (s, gamma) --
         except with ``reuse`` (and reuse_factor on): then N(s) tau = -b is solved by PCG
         preconditioned by the factor already loaded (a nearby configuration's, e.g. the
@@ -148,11 +153,12 @@ class BondedSystem:
         If the PCG does not reach REUSE_BERR in REUSE_MAX_IT iterations, N(s) is factorised.
         ``rtol`` > 0 (an intermediate solve of a step): the same PCG to the relative
         energy-norm error ``rtol`` (STAGE_MAX_IT iterations, then a factorisation), started
-        from ``guess`` (tau of a nearby configuration, e.g. the previous stage's)."""
+        from ``guess`` (tau of a nearby configuration, e.g. the previous stage's); ``max_it``
+        replaces STAGE_MAX_IT."""
         h, r, ell, n, b = self.geometry(s, gamma)
         tau = None
         if rtol > 0 and self.n_factor > 0 and self.stage_pcg_possible:
-            tau, info = self._solve_reused(n, -b, what, rtol=rtol, guess=guess)
+            tau, info = self._solve_reused(n, -b, what, rtol=rtol, guess=guess, max_it=max_it)
         elif reuse and self.reuse_factor and self.n_factor > 0:
             tau, info = self._solve_reused(n, -b, what)
         if tau is None:
@@ -188,7 +194,7 @@ class BondedSystem:
         return hasattr(self.tau_solver, "apply")
 
     def _solve_reused(self, n: np.ndarray, rhs: np.ndarray, what: str, rtol: float = 0.0,
-                      guess: np.ndarray | None = None):
+                      guess: np.ndarray | None = None, max_it: int | None = None):
         """PCG for N(n) x = rhs, preconditioned by the loaded factor; (x, SolveInfo) when the
         backward error reaches REUSE_BERR (``rtol`` = 0) or the estimated relative error in
         the energy norm reaches ``rtol``, (None, None) otherwise.  For the backward error the
@@ -197,7 +203,8 @@ class BondedSystem:
         A = self.ops.matvec_at(n)
         nb = float(np.linalg.norm(rhs))
         norm_n = self.tau_solver.norm_bound
-        max_it = STAGE_MAX_IT if rtol > 0 else REUSE_MAX_IT
+        if max_it is None:
+            max_it = STAGE_MAX_IT if rtol > 0 else REUSE_MAX_IT
         if guess is not None and rtol > 0:
             x = np.array(guess, dtype=float)
             r = rhs - A(x)
@@ -245,6 +252,20 @@ class BondedSystem:
         self.ops.set_local(self.ops.rhs, r)
         self.tau_solver.apply(self.ops.rhs, self._x, what + " (reused factor)")
         return self.ops.gather(self._x)
+
+    def ensure_loaded(self, F: Force) -> None:
+        """Make N (and its factor, at the next solve) hold the configuration of ``F`` --
+        after a step whose trial configurations were factorised (a failed PCG's fallback)."""
+        if self.ops.loaded_n is not F.n:
+            self.load(F.n)
+
+    def linearised(self, F: Force) -> "Linearised":
+        """u -> J u, the Jacobian of ds/dgamma = h^-1 V_na(s) at the configuration of ``F``
+        (at fixed gamma), each product one solve with N's factor there (see
+        :class:`Linearised`).  N must be loaded at F (:meth:`ensure_loaded`)."""
+        if self._pattern is None:
+            self._pattern = _LinearPattern(self.state)
+        return Linearised(self, F, self._pattern)
 
     def sync(self) -> None:
         """Make the Mat hold N at the current configuration again (after a reused-factor
@@ -322,3 +343,78 @@ class BondedSystem:
         self._x.destroy()
         self.ops.destroy()
 
+
+
+class _LinearPattern:
+    """The sparse patterns of :class:`Linearised` for a fixed bond list (replicated scipy
+    CSR, built once): B maps node displacements v (N d) to pair displacements v_j - v_i
+    (Nc d); S-shaped rows (Nc x N d: -a_alpha at i, +a_alpha at j) for S and Q; the
+    rod-diagonal d x d blocks (Nc d x Nc d) of the geometric stiffness."""
+
+    def __init__(self, state: State):
+        bd, d, nn = state.bonds, state.d, state.n
+        nc = len(bd)
+        comp = np.arange(d)
+        ci, cj = d * bd.i[:, None] + comp, d * bd.j[:, None] + comp        # (Nc, d)
+        self.B = sp.csr_matrix((np.tile([-1.0, 1.0], nc * d),
+                                np.stack([ci.ravel(), cj.ravel()], axis=1).ravel(),
+                                2 * np.arange(nc * d + 1)), shape=(nc * d, nn * d))
+        self.BT = self.B.T.tocsr()
+        self.s_indices = np.concatenate([ci, cj], axis=1).ravel()
+        self.s_indptr = 2 * d * np.arange(nc + 1)
+        rows = np.arange(nc * d).reshape(nc, d)
+        self.k_indices = np.repeat(rows, d, axis=0).ravel()                # row a of rod: its d columns
+        self.k_indptr = d * np.arange(nc * d + 1)
+        self.shape_s = (nc, nn * d)
+        self.shape_k = (nc * d, nc * d)
+
+    def rows_S(self, a: np.ndarray) -> sp.csr_matrix:
+        """The S-shaped matrix with rows -a_alpha at node i and +a_alpha at node j."""
+        return sp.csr_matrix((np.concatenate([-a, a], axis=1).ravel(), self.s_indices,
+                              self.s_indptr), shape=self.shape_s)
+
+
+class Linearised:
+    """The Jacobian J of the bonded flow ds/dgamma = h^-1 V_na(s) at one configuration, as a
+    product u -> J u for the linearly implicit step (dynamics.ros2).
+
+    With v = h u the node displacements, and at fixed gamma (DESIGN §2 for S, N, tau, b):
+        dn_alpha   = (1 - n n^T)(v_j - v_i) / l_alpha                (unit vectors turn)
+        f          = dS^T tau = sum_alpha tau_alpha (+-dn_alpha)      = G v   (geometric stiffness)
+        d(N tau)   = -db:   N dtau = -(S (f + E v) + dS (V_f + V_na))
+        dV_na      = f - S^T N^-1 (S (f + E v) + Q v),   (Q v)_alpha = dn_alpha . (E r_alpha + V_na,j - V_na,i)
+    and J u = h^-1 dV_na: one solve with N's factor a product.  Near jamming its spectrum is
+    real and spread down to ~ -13 sigma (rods under the large forces of the soft mode turning
+    back into line: G ~ tau / l), while the flow itself changes on strains ~ 1 / (0.1 sigma):
+    the stiffness that bounds an explicit step (docs/solvers.md, "A linearly implicit step")."""
+
+    def __init__(self, system: BondedSystem, F: Force, pattern: _LinearPattern):
+        st = system.state
+        self.system, self.d, self.nn = system, st.d, st.n
+        self.h, self.hinv, self.ET = F.h, np.linalg.inv(F.h), st.E.T
+        n, ell, tau = F.n, F.ell, F.tau
+        d = st.d
+        proj = np.eye(d)[None] - n[:, :, None] * n[:, None, :]              # (Nc, d, d)
+        self.K = sp.csr_matrix((((tau / ell)[:, None, None] * proj).ravel(), pattern.k_indices,
+                                pattern.k_indptr), shape=pattern.shape_k)
+        bd = st.bonds
+        vp = F.r @ st.E.T + F.V_na[bd.j] - F.V_na[bd.i]
+        q = np.einsum("aij,aj->ai", proj, vp) / ell[:, None]
+        self.S = pattern.rows_S(n)
+        self.ST = self.S.T.tocsr()
+        self.Q = pattern.rows_S(q)
+        self.B, self.BT = pattern.B, pattern.BT
+        self.direct = system.stage_pcg_possible      # a factor to apply (not the deflated CG)
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """J u for u flat (N d,) in reduced coordinates; flat out."""
+        shape = (self.nn, self.d)
+        v = (u.reshape(shape) @ self.h.T).ravel()
+        f = self.BT @ (self.K @ (self.B @ v))
+        rhs = self.S @ (f + (v.reshape(shape) @ self.ET).ravel()) + self.Q @ v
+        sysm = self.system
+        x = sysm._apply(rhs, "Jacobian product") if self.direct else \
+            sysm.solve_N(rhs, what="Jacobian product")
+        sysm.n_jvp += 1
+        dv = f - self.ST @ x
+        return (dv.reshape(shape) @ self.hinv.T).ravel()

@@ -84,13 +84,17 @@ class StepControl:
     controller: str = key("I", lambda v: v in CONTROLLERS, f"one of {list(CONTROLLERS)}",
                           "step-size control: I (dg ~ tol/err) or PI")
     method: str = key("heun", lambda v: v in INTEGRATORS, "a registered integrator (INTEGRATORS)",
-                      "the bonded integrator: heun or rkc")
+                      "the bonded integrator: heun, rkc or ros2")
     max_stages: int = key(200, lambda v: isinstance(v, int) and 2 <= v <= 200, "an integer in [2, 200]",
                           "rkc: the most stages of one step (2: no stabilisation, a "
                           "second-order two-stage step)")
     stage_rtol: float = key(0.0, lambda v: 0 <= v < 1e-3, "in [0, 1e-3)",
                             "intermediate force solves (predictor, stages) by PCG on the loaded "
-                            "factor to this relative error of V_na; 0: a factorisation each")
+                            "factor to this relative error of V_na; 0: a factorisation each "
+                            "(ros2: its stage force always by PCG, 0 meaning 1e-6)")
+    krylov_rtol: float = key(1e-3, lambda v: 0 < v < 1, "in (0, 1)",
+                             "ros2: relative residual of the stage equations (GMRES, each "
+                             "iteration one solve with the step's factor)")
 
     def validate(self):
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",

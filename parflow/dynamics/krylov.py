@@ -1,0 +1,70 @@
+"""GMRES on replicated numpy vectors (the stage equations of the linearly implicit step).
+
+Every rank holds the whole vector and applies the same operator (whose solves with N are
+collective), so every rank computes the same numbers in the same order: the iteration is
+deterministic and rank-count independent to the round-off of the operator.
+
+    gmres(A, b, rtol, max_it) -> KrylovResult(x, iterations, residual, converged, ritz)
+
+Arnoldi with modified Gram-Schmidt, Givens rotations on the Hessenberg matrix, no restart
+(the stage equations converge in tens of iterations), x0 = 0; converged when the
+recursively updated residual |b - A x| <= rtol |b|.  The true residual of the returned x
+is not recomputed (one more operator application): the caller's error control sees the
+effect of an inexact stage through its own estimate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class KrylovResult:
+    x: np.ndarray
+    iterations: int
+    residual: float      # |b - A x| / |b| (the recursive estimate)
+    converged: bool
+    ritz: np.ndarray = None   # eigenvalues of the Hessenberg matrix (complex)
+
+
+def gmres(A, b: np.ndarray, rtol: float, max_it: int) -> KrylovResult:
+    """Solve A x = b (A: a function of a 1-D array) to the relative residual ``rtol``."""
+    nb = float(np.linalg.norm(b))
+    if nb == 0.0 or not np.isfinite(nb):
+        return KrylovResult(np.zeros_like(b), 0, 0.0 if nb == 0.0 else np.inf, nb == 0.0)
+    Q = np.empty((max_it + 1, b.size))
+    Q[0] = b / nb
+    H = np.zeros((max_it + 1, max_it))
+    Hraw = np.zeros((max_it + 1, max_it))      # before the rotations: for the Ritz values
+    g = np.zeros(max_it + 1)
+    g[0] = nb
+    cs, sn = np.zeros(max_it), np.zeros(max_it)
+    k, res = 0, 1.0
+    for k in range(max_it):
+        w = A(Q[k])
+        for i in range(k + 1):                     # modified Gram-Schmidt
+            H[i, k] = float(w @ Q[i])
+            w -= H[i, k] * Q[i]
+        hk1 = float(np.linalg.norm(w))
+        H[k + 1, k] = hk1
+        Hraw[:k + 2, k] = H[:k + 2, k]
+        for i in range(k):                         # earlier rotations on the new column
+            t = cs[i] * H[i, k] + sn[i] * H[i + 1, k]
+            H[i + 1, k] = -sn[i] * H[i, k] + cs[i] * H[i + 1, k]
+            H[i, k] = t
+        r = float(np.hypot(H[k, k], H[k + 1, k]))
+        if r == 0.0 or not np.isfinite(r):
+            return KrylovResult(np.zeros_like(b), k + 1, np.inf, False)
+        cs[k], sn[k] = H[k, k] / r, H[k + 1, k] / r
+        H[k, k], H[k + 1, k] = r, 0.0
+        g[k + 1] = -sn[k] * g[k]
+        g[k] = cs[k] * g[k]
+        res = abs(g[k + 1]) / nb
+        if res <= rtol or k + 1 == max_it or hk1 == 0.0:     # (hk1 = 0: x is exact)
+            break
+        Q[k + 1] = w / hk1
+    m = k + 1
+    y = np.linalg.solve(np.triu(H[:m, :m]), g[:m])
+    x = y @ Q[:m]
+    return KrylovResult(x, m, res, bool(res <= rtol), np.linalg.eigvals(Hraw[:m, :m]))

@@ -1,0 +1,154 @@
+"""A linearly implicit integrator for the stiff bonded flow: the two-stage Rosenbrock-W method
+ROS2 (Verwer, Spee, Blom & Hundsdorfer 1999), ``[integrator] method = "ros2"``.
+
+Why: near jamming the Jacobian J of ds/dgamma = F(s) has a real spectrum reaching ~ -13 sigma
+(rods under the soft mode's large forces turning back into line: the geometric stiffness
+tau / l; measured on an N = 4 096 network, docs/solvers.md "A linearly implicit step"),
+while the flow itself changes on strains ~ 1 / (0.1 sigma).  An explicit step is bounded by
+the first (Heun: dg |lambda| <= 2), an L-stable one only by the second.
+
+One step of size h = direction * dg from s with F0 = F(s) (N factorised at s):
+    W   = I - g h J,   g = 1 + 1/sqrt(2)        (J at s: BondedSystem.linearised)
+    W k1 = F0
+    W k2 = F(s + h k1, gamma + h) - 2 k1
+    s'  = s + h (3/2 k1 + 1/2 k2),  projected on the rod lengths (with the factor at s)
+    err = |h/2 (k1 + k2)| / (dg max(|V0|, |V1|))      (against the linearly implicit Euler
+          step s + h k1, in real space, relative to the step's displacement: the measure of
+          Heun's error, to which it reduces for a slow flow, times 1.2)
+    accept if err <= tol; the next dg from err as Heun's (controller I or PI, max_dgamma,
+    max_displacement).
+ROS2 is of order 2 for any W (a W-method), so J need not be exact: each stage equation is
+solved by GMRES (dynamics.krylov) to the relative residual ``krylov_rtol``, each product J u
+one solve with the factor at s.  The stage force F(s + h k1) is a PCG on that factor to
+``stage_rtol`` (STAGE_RTOL if the key is 0: the stage force enters the solution directly);
+should the PCG fall back to a factorisation there, N at s is loaded again for the second
+stage (W must be the same in both).  The force at the projected point is a factorisation:
+the next step's J.  A step whose GMRES does not converge in KRYLOV_MAX_IT iterations, or
+whose projection fails, is rejected and retried 4x smaller.
+Growing modes: ROS2 is accurate for h lambda <= 0 of any size, but its stability function
+R(z) = (1 - (2g - 1) z) / (1 - g z)^2 has a pole at z = 1/g = 0.59 and follows e^z only
+for z = h lambda <~ 0.2 on the growing side.  A reversed flow turns the stiff modes into
+growing ones (rate ~ 13 sigma: the buckling that the reversed branch is made of), and an
+error estimate built from two such stages does not see it.  So the Ritz values mu of W
+from stage 1's GMRES (mu = 1 - g h lambda) give the fastest growth rate lambda_+ of the
+step; a step with h lambda_+ > GROWTH_MAX is rejected, and every step is bounded by
+dg <= 0.9 GROWTH_MAX / lambda_+ (lambda_+ the larger of the rate measured and RATE_RELAX
+times the one before: a short step's Krylov space, converged in an iteration or two, does
+not see the growth; checkpointed).  Toward jamming
+lambda_+ is small (8.7e4 at sigma = 1e6 against -1.3e7 for the stiff modes, N = 4 096):
+the bound does not bite; on a reversed leg it makes ROS2 as slow as an explicit step, and
+Heun is the cheaper choice there (per-leg integrator keys).
+Rod lengths and the sigma identity: as every bonded step.
+Cost of a step: one factorisation, the stage PCG, 2 x (GMRES iterations) solves and the
+projection's solves; measured in docs/benchmarks.md ("Integrators on a network").
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..algebra.solvers import SingularOperator
+from .heun import INTEGRATORS, Heun, Stall, StepResult, vnorm
+from .krylov import gmres
+
+GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
+# The stage force by PCG on the step's factor when integrator.stage_rtol = 0: its error
+# enters the step as ~ h |dF| / 2, i.e. a relative 5e-7 of the step's displacement (the
+# step's own error is held at tol ~ 0.05), within STAGE_MAX_IT PCG iterations (6-13 at
+# 1e-10 on an N = 40 000 network at dg sigma <= 0.1, 36 at 0.3; two thirds of that at 1e-6)
+STAGE_RTOL = 1e-6
+STAGE_MAX_IT = 30
+KRYLOV_MAX_IT = 150
+GROWTH_MAX = 0.2             # the largest h lambda of a growing mode a step may take
+RATE_RELAX = 0.9             # the growth rate remembered, relaxed by this a measurement
+
+
+class ROS2(Heun):
+    """ROS2 steps of the bonded flow (see the module); same interface as Heun."""
+
+    def __init__(self, system, control, err_prev=None):
+        super().__init__(system, control, err_prev)
+        self.rate_plus = 0.0         # the fastest growth rate measured (per unit strain)
+        self.krylov_failed = 0
+
+    def memory(self) -> tuple[dict, dict]:
+        return {}, dict(ros2_rate_plus=self.rate_plus)
+
+    def recall(self, ck: dict) -> None:
+        if "ros2_rate_plus" in ck:
+            self.rate_plus = float(ck["ros2_rate_plus"])
+
+    def bound(self, F, dg: float) -> float:
+        dg = super().bound(F, dg)
+        return min(dg, 0.9 * GROWTH_MAX / self.rate_plus) if self.rate_plus > 0 else dg
+
+    def _stage(self, W, rhs: np.ndarray, shape):
+        """GMRES on W x = rhs: (x, Ritz values), or (None, None) if it did not converge."""
+        res = gmres(W, rhs.ravel(), self.c.krylov_rtol, KRYLOV_MAX_IT)
+        self.system.krylov_iterations += res.iterations
+        if not res.converged:
+            self.krylov_failed += 1
+            return None, None
+        return res.x.reshape(shape), res.ritz
+
+    def step(self, s, gamma, F0, direction: int, dg: float, dg_cap: float | None = None) -> StepResult:
+        sysm, c = self.system, self.c
+        rejected = 0
+        nV0 = vnorm(F0.V_na)
+        stall, dg_first = Stall(), dg
+        stage_rtol = c.stage_rtol if c.stage_rtol > 0 else STAGE_RTOL
+        lin = None
+        while True:
+            dg = self.trial(F0, dg, dg_cap, gamma, rejected, stall)
+            h = direction * dg
+            sysm.ensure_loaded(F0)
+            if lin is None:
+                lin = sysm.linearised(F0)
+            W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
+            try:
+                k1, ritz = self._stage(W, F0.ds, s.shape)
+                if k1 is None:
+                    raise SingularOperator("ROS2 stage 1: GMRES did not converge")
+                # growth: mu = 1 - g h lambda < 1 (see the module)
+                hl = float(np.max((1.0 - ritz.real) / GAMMA, initial=0.0))
+                self.rate_plus = max(hl / dg, RATE_RELAX * self.rate_plus)
+                if hl > GROWTH_MAX:
+                    rejected += 1
+                    dg *= 0.9 * GROWTH_MAX / hl
+                    continue
+                F1 = sysm.evaluate(s + h * k1, gamma + h, what="ROS2 stage", rtol=stage_rtol,
+                                   guess=F0.tau, max_it=STAGE_MAX_IT)
+                sysm.ensure_loaded(F0)
+                k2, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape)
+                if k2 is None:
+                    raise SingularOperator("ROS2 stage 2: GMRES did not converge")
+            except SingularOperator:
+                rejected += 1
+                dg *= 0.25
+                continue
+            scale = dg * max(nV0, vnorm(F1.V_na))
+            est = (0.5 * h) * (k1 + k2) @ F0.h.T
+            err = vnorm(est) / scale if scale > 0 else 0.0
+            if not np.isfinite(err) or err > c.tol:
+                rejected += 1
+                if np.isfinite(err) and stall.stalled(dg, err):
+                    F0 = self.refresh(s, gamma)
+                    nV0, dg, lin = vnorm(F0.V_na), dg_first, None
+                    continue
+                dg *= max(0.2, 0.9 * c.tol / err) if np.isfinite(err) else 0.25
+                continue
+            try:
+                s_new, it, lerr = sysm.project(s + h * (1.5 * k1 + 0.5 * k2), gamma + h,
+                                               tol=c.length_tol, pcg=True)
+                F = sysm.evaluate(s_new, gamma + h, what="force")
+            except SingularOperator:
+                rejected += 1
+                dg *= 0.25
+                continue
+            grow = self.growth(err, rejected)
+            self.err_prev = err
+            return StepResult(s_new, gamma + h, F, h, dg * grow, err, rejected, it, lerr)
+
+
+INTEGRATORS["ros2"] = ROS2
