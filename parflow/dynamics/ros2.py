@@ -71,6 +71,7 @@ class ROS2(Heun):
         super().__init__(system, control, err_prev)
         self.rate_plus = 0.0         # the fastest growth rate measured (per unit strain)
         self.krylov_failed = 0
+        self.rejections = dict(error=0, growth=0, solve=0, projection=0)   # by cause
 
     def memory(self) -> tuple[dict, dict]:
         return {}, dict(ros2_rate_plus=self.rate_plus)
@@ -115,6 +116,7 @@ class ROS2(Heun):
                 self.rate_plus = max(hl / dg, RATE_RELAX * self.rate_plus)
                 if hl > GROWTH_MAX:
                     rejected += 1
+                    self.rejections["growth"] += 1
                     dg *= 0.9 * GROWTH_MAX / hl
                     continue
                 F1 = sysm.evaluate(s + h * k1, gamma + h, what="ROS2 stage", rtol=stage_rtol,
@@ -125,6 +127,7 @@ class ROS2(Heun):
                     raise SingularOperator("ROS2 stage 2: GMRES did not converge")
             except SingularOperator:
                 rejected += 1
+                self.rejections["solve"] += 1
                 dg *= 0.25
                 continue
             scale = dg * max(nV0, vnorm(F1.V_na))
@@ -132,6 +135,7 @@ class ROS2(Heun):
             err = vnorm(est) / scale if scale > 0 else 0.0
             if not np.isfinite(err) or err > c.tol:
                 rejected += 1
+                self.rejections["error"] += 1
                 if np.isfinite(err) and stall.stalled(dg, err):
                     F0 = self.refresh(s, gamma)
                     nV0, dg, lin = vnorm(F0.V_na), dg_first, None
@@ -144,6 +148,7 @@ class ROS2(Heun):
                 F = sysm.evaluate(s_new, gamma + h, what="force")
             except SingularOperator:
                 rejected += 1
+                self.rejections["projection"] += 1
                 dg *= 0.25
                 continue
             grow = self.growth(err, rejected)
