@@ -171,6 +171,16 @@ class BondedSystem:
             self.ops.set_unit_vectors(n)
         return self._force(gamma, h, r, ell, n, b, tau, info)
 
+    def evaluate_reusing(self, s: np.ndarray, gamma: float, what: str = "force") -> Force:
+        """:meth:`evaluate` with the solve by PCG on the factor loaded (to REUSE_BERR, or N(s)
+        factorised there), whatever ``solver.reuse_factor`` says: for an integrator that
+        loaded a factor near s on purpose (dynamics.ros2)."""
+        saved, self.reuse_factor = self.reuse_factor, self.n_factor > 0
+        try:
+            return self.evaluate(s, gamma, what, reuse=True)
+        finally:
+            self.reuse_factor = saved
+
     def force_from_tau(self, s: np.ndarray, gamma: float, tau: np.ndarray) -> Force:
         """The Force at (s, gamma) for known rod forces tau (a restart from a checkpoint that
         stored them: the same numbers as the run that wrote it, without a solve); N is
