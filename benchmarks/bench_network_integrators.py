@@ -145,6 +145,9 @@ def main():
     ap.add_argument("--n", type=int, default=4096)
     ap.add_argument("--cases", default=",".join(DEFAULT_CASES))
     ap.add_argument("--folder", default=os.path.join("out", "bench_network_integrators"))
+    ap.add_argument("--json", default="network_integrators",
+                    help="the results file under docs/benchmarks/ (another name: a run beside one "
+                         "that writes the default, to be merged by hand)")
     args = ap.parse_args()
     cases = args.cases.split(",")
     if not set(cases) <= set(CASES):
@@ -157,7 +160,7 @@ def main():
     rows = []
     if rank == 0:        # the rows of earlier runs of this N and rank count (other cases) stay
         import json
-        p = results.path("network_integrators")
+        p = results.path(args.json)
         old = {}
         if os.path.exists(p):
             with open(p) as fh:
@@ -188,7 +191,7 @@ def main():
                          load_start=load_start, load_end=os.getloadavg(),
                          peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                          c_window=C_WINDOW, rows=rows))
-        results.write("network_integrators", dict(
+        results.write(args.json, dict(
             benchmark="network forward to sigma = 1e6 and back: integrators and intermediate solves",
             records=recs))
         for r in rows:

@@ -182,7 +182,8 @@ class BondedEngine:
                     n_reuse_failed=sysm.n_reuse_failed, n_stage_pcg=sysm.n_stage_pcg,
                     n_stage_failed=sysm.n_stage_failed, pcg_iterations=sysm.pcg_iterations,
                     n_suspect_solves=getattr(sysm.tau_solver, "n_suspect", 0),
-                    n_force_refreshed=sysm.n_refreshed, krylov_iterations=sysm.krylov_iterations)
+                    n_force_refreshed=sysm.n_refreshed, krylov_iterations=sysm.krylov_iterations,
+                    n_factor_rebuilt=getattr(sysm.tau_solver, "n_rebuilt", 0))
 
     def destroy(self) -> None:
         if self._spec is not None:
