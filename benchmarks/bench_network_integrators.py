@@ -76,9 +76,11 @@ SPLIT_CASES = {
 for _name, (_scene, _split, _near) in SPLIT_CASES.items():
     CASES[_name] = f"{_scene}; to sigma = {_split:g}, then {_near}".replace("\n", "; ")
 # the reversed leg seeded: perturb = ETA a0 at the turn with perturb_seed k (the leg's keys),
-# Heun and RKC2 at their defaults -- does the seed or the integrator select the branch?
+# Heun and RKC2 at their defaults, ROS2 (tol 0.2) forward with Heun reversed -- does the seed
+# or the integrator select the branch?
 PERTURB_ETA, PERTURB_SEEDS = 3e-4, (1, 2, 3, 4)
-PERTURB_CASES = {f"{m}_seeded_{k}": (m, k) for m in ("heun", "rkc") for k in PERTURB_SEEDS}
+PERTURB_CASES = {f"{m}_seeded_{k}": (m, k) for m in ("heun", "rkc", "ros2_fast_heun")
+                 for k in PERTURB_SEEDS}
 for _name, (_m, _k) in PERTURB_CASES.items():
     CASES[_name] = CASES[_m] + f"; reversed leg: perturb = {PERTURB_ETA:g}, perturb_seed = {_k}"
 DEFAULT_CASES = ("heun", "heun_stages", "rkc", "rkc_stages", "rkc_2stages", "ref_heun", "ref_rkc")
@@ -104,19 +106,17 @@ def run(folder, n, network, case):
     if comm.getRank() == 0 and os.path.exists(path):
         os.remove(path)
     comm.tompi4py().Barrier()
-    if case in SPLIT_CASES:
-        settings, split, near = SPLIT_CASES[case]
+    base, seed = PERTURB_CASES.get(case, (case, None))
+    if base in SPLIT_CASES:
+        settings, split, near = SPLIT_CASES[base]
         text = FORWARD_SPLIT_AND_BACK.format(n=n, network=network, path=path, split=split,
                                              near=near, settings="[integrator]\n" + settings)
-    elif case in PERTURB_CASES:
-        m, k = PERTURB_CASES[case]
-        text = FORWARD_AND_BACK.format(n=n, network=network, path=path,
-                                       settings="[integrator]\n" + CASES[m])
-        text = text.replace('direction = "reverse"', f'direction = "reverse"\nperturb = '
-                            f'{PERTURB_ETA!r}\nperturb_seed = {k}')
     else:
         text = FORWARD_AND_BACK.format(n=n, network=network, path=path,
-                                       settings="[integrator]\n" + CASES[case])
+                                       settings="[integrator]\n" + CASES[base])
+    if seed is not None:
+        text = text.replace('direction = "reverse"', f'direction = "reverse"\nperturb = '
+                            f'{PERTURB_ETA!r}\nperturb_seed = {seed}')
     scene = load_scene(text)
     setup_logging(comm, quiet=True)
     comm.tompi4py().Barrier()

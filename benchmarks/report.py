@@ -295,8 +295,8 @@ def network_integrators_section(d):
            "since the reversal); Δ: against the Heun reference.  Times: the step loop (and its CPU "
            "time), one rank unless said.", "",
            "| N | ranks | case | integrator | loop (s) | CPU (s) | steps fwd + rev | rejected | "
-           "factorisations | PCG solves (iterations) | Δγ₁₀₆ | C | ΔC/C |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "factorisations | PCG solves (iterations) | GMRES iterations | Δγ₁₀₆ | C | ΔC/C |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for rec in sorted(d["records"], key=lambda r: (r["n"], r["ranks"])):
         for r in rec["rows"]:
             dg = r.get("dgamma_ref_heun", float("nan"))
@@ -305,6 +305,7 @@ def network_integrators_section(d):
                        f"{r['loop_seconds']:.1f} | {r['cpu_seconds']:.1f} | {r['steps_forward']} + "
                        f"{r['steps_reverse']} | {r['rejected']} | {r['n_factorisations']} | "
                        f"{r['n_stage_pcg']} ({r['pcg_iterations']}) | "
+                       f"{r.get('krylov_iterations') or '-'} | "
                        f"{'-' if dg != dg else f'{dg:+.1e}'} | {r['C']:.4f} | "
                        f"{'-' if dc != dc else f'{dc:+.3f}'} |")
     recs = {rec["n"]: {r["case"]: r for r in rec["rows"]} for rec in d["records"] if rec["ranks"] == 1}
@@ -369,6 +370,19 @@ def network_integrators_section(d):
                 "(docs/networks.md): the ensemble exponents are not affected.  Heun stays the "
                 "default and the integrator of every reversed protocol in runs/; `stage_rtol` "
                 "is the saving that keeps Heun's accuracy."]
+    ros2_seeded = [small[f"ros2_fast_heun_seeded_{k}"] for k in range(1, 9)
+                   if f"ros2_fast_heun_seeded_{k}" in small]
+    if ros2_seeded and seeded["heun"]:
+        pairs = [(a["C"], b["C"]) for a, b in zip(seeded["heun"], ros2_seeded)]
+        out += ["", "**ROS2 forward (tol 0.2), Heun reversed, the reversal seeded alike** (the "
+                "`ros2_fast_heun_seeded_*` rows): per seed, Heun / ROS2 C = " +
+                ", ".join(f"{a:.4f}/{b:.4f}" for a, b in pairs) +
+                f"; means {sum(a for a, _ in pairs) / len(pairs):.4f} and "
+                f"{sum(b for _, b in pairs) / len(pairs):.4f}.  The seed still selects the branch "
+                "within the same spread, but ROS2's turn state pairs with a seed less closely "
+                f"than RKC2's does (up to {100 * max(abs(b / a - 1) for a, b in pairs):.0f} % "
+                "per seed): its forward steps, ~3x longer, leave another mix of slow modes at "
+                "the turn, and 3e-4 a0 does not dominate it entirely."]
     if "rkc_2stages" in small and "heun" in small:
         r2, h = small["rkc_2stages"], small["heun"]
         out += ["", f"RKC2 held to two stages (`max_stages = 2`) is Heun's equal: C within "
@@ -450,7 +464,7 @@ def departure_section(d):
 
 def stiff_section(d):
     ref = d["reference"]
-    out = ["## Stiff chain: Heun against RKC2 (`bench_stiff.py`)", "",
+    out = ["## Stiff chain: Heun, RKC2 and ROS2 (`bench_stiff.py`)", "",
            f"The paper's Fig. 2 scene ({d['scene']}: forward to ⟨V²⟩ = 10⁸, then reversed) with "
            "each bonded integrator (`[integrator] method`, `tol`), against a tight reference "
            f"({ref['method']}, tol = {ref['tol']}: {ref['steps']} steps, {ref['rejected']} rejected, "
@@ -458,12 +472,13 @@ def stiff_section(d):
            "against the reference at the same strain.  Departure: the strain after the reversal "
            "where the reversed branch leaves the forward one (|Δ ln ⟨V²⟩| > 0.1 at the same γ; "
            f"reference: {ref['departure_strain']:.3g}).", "",
-           "| method | tol | max stages | steps | rejected | factorisations | wall (s) | error | departure |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "| method | tol | max stages | steps | rejected | factorisations | GMRES (PCG) iterations | wall (s) | error | departure |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for r in d["runs"]:
+        kry = f"{r['krylov_iterations']} ({r['pcg_iterations']})" if r.get("krylov_iterations") else "-"
         out.append(f"| {r['method']} | {r['tol']} | {r.get('max_stages', 200) if r['method'] == 'rkc' else '-'} | "
                    f"{r['steps']} | {r['rejected']} | "
-                   f"{r['factorisations']} | {r['wall_seconds']} | {r['forward_max_dlnV2']:.2e} | "
+                   f"{r['factorisations']} | {kry} | {r['wall_seconds']} | {r['forward_max_dlnV2']:.2e} | "
                    f"{r['departure_strain']:.3g} |")
     two = [r for r in d["runs"] if r["method"] == "rkc" and r.get("max_stages", 200) == 2]
     many = [r["departure_strain"] for r in d["runs"] if r["method"] == "rkc" and r.get("max_stages", 200) > 2]
@@ -478,6 +493,21 @@ def stiff_section(d):
                 "it departs first); with a stated seed it is converged across integrators and "
                 "tolerances to 2 % (\"Reversibility of the chain\" below, where the departure is "
                 "also resolved in strain: here it is read at the rows of each run)."]
+    ros2 = [r for r in d["runs"] if r["method"] == "ros2"]
+    heun = {r["tol"]: r for r in d["runs"] if r["method"] == "heun"}
+    if ros2 and heun:
+        r, h = ros2[0], heun.get(ros2[0]["tol"], next(iter(heun.values())))
+        out += ["", f"ROS2 (linearly implicit, L-stable; docs/solvers.md \"A linearly implicit step\") at "
+                f"tol {r['tol']}: {r['steps']} steps and {r['rejected']} rejected "
+                f"({100 * r['rejected'] / max(r['steps'], 1):.1f} %), forward error "
+                f"{r['forward_max_dlnV2']:.1e}, {r['wall_seconds']} s, against Heun's {h['steps']} "
+                f"and {h['rejected']} ({100 * h['rejected'] / max(h['steps'], 1):.0f} %), "
+                f"{h['forward_max_dlnV2']:.1e}, {h['wall_seconds']} s at tol {h['tol']}: "
+                f"{(h['steps'] + h['rejected']) / (r['steps'] + r['rejected']):.1f}x fewer trial "
+                f"steps, {h['forward_max_dlnV2'] / r['forward_max_dlnV2']:.0f}x smaller error.  "
+                f"One factorisation a step ({r['factorisations']}); "
+                f"{r['krylov_iterations'] / max(r['steps'] + r['rejected'], 1):.1f} GMRES "
+                "iterations a trial step, each a solve with the tridiagonal factor."]
     return out + [""]
 
 

@@ -174,7 +174,10 @@ class BondedSystem:
     def evaluate_reusing(self, s: np.ndarray, gamma: float, what: str = "force") -> Force:
         """:meth:`evaluate` with the solve by PCG on the factor loaded (to REUSE_BERR, or N(s)
         factorised there), whatever ``solver.reuse_factor`` says: for an integrator that
-        loaded a factor near s on purpose (dynamics.ros2)."""
+        loaded a factor near s on purpose (dynamics.ros2).  Without a factor (the deflated
+        CG) a plain :meth:`evaluate`."""
+        if not self.stage_pcg_possible:
+            return self.evaluate(s, gamma, what)
         saved, self.reuse_factor = self.reuse_factor, self.n_factor > 0
         try:
             return self.evaluate(s, gamma, what, reuse=True)
