@@ -79,3 +79,19 @@ def test_threads_usr1_stops_the_run_with_a_checkpoint(tmp_path):
            str(scene), "--output", str(out), "--quiet", "--no-plots"]
     code, err = _signal_run(cmd, out, signal.SIGUSR1)
     _assert_stopped(code, err, out, signal.SIGUSR1)
+
+
+def test_threads_run_with_omega_min_exits(tmp_path):
+    """omega_min initialises SLEPc on rank 0 alone; SLEPc's finalisation at exit is collective,
+    so the other ranks must have it too, or rank 0 hangs after the run (it did, with the
+    others in MPI_Finalize).  A hang ends this test in its timeout."""
+    scene = tmp_path / "omega.toml"
+    scene.write_text(SCENE.format(parallel="threads", network="")
+                     + "[observables]\nomega_min_every = 5\n")
+    out = tmp_path / "o.h5"
+    res = _shear(scene, "--output", out, mpi=2, timeout=120)
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out) as f:
+        assert f.attrs["status"] == "complete"
+        om = f["timeseries/omega_min"][:]
+        assert np.isfinite(om).sum() >= 3 and (om[np.isfinite(om)] > 0).all()

@@ -93,6 +93,14 @@ class LowSpectrum:
         self.eps.destroy()
 
 
+def init_slepc() -> None:
+    """Initialise SLEPc here, on every rank that calls this (collectively), rather than where
+    omega_min first asks for it.  SLEPc's finalisation at interpreter exit is collective on
+    COMM_WORLD: with solver.parallel = "threads" only rank 0 computes omega_min, and with
+    SLEPc initialised on rank 0 alone that rank hung at exit (the others in MPI_Finalize)."""
+    from slepc4py import SLEPc  # noqa: F401
+
+
 def omega_from_lambda(lam: np.ndarray) -> np.ndarray:
     """omega = sqrt(lambda), with round-off negatives clipped to 0."""
     return np.sqrt(np.clip(lam, 0.0, None))
