@@ -47,6 +47,8 @@ def init_petsc(petsc_args: list[str]):
     import petsc4py
     petsc4py.init([sys.argv[0]] + petsc_args)
     from petsc4py import PETSc
+    from .algebra.spectrum import init_slepc    # (after init: see the module docstring)
+    init_slepc()
     if already:
         db, k = PETSc.Options(), 0
         while k < len(petsc_args):

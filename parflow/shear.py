@@ -218,9 +218,7 @@ def _on_rank0_with_threads(comm, PETSc, work, threads: int):
     import pickle                                       # (only for this mode)
     from .algebra.comm import idle_barrier
     from .algebra.solvers import set_blas_threads, use_cores
-    from .algebra.spectrum import init_slepc
     from .state import STOPS
-    init_slepc()                                        # on every rank: see init_slepc
     mpi = comm.tompi4py()
     if mpi.Get_rank() == 0:
         _, prev = use_cores(threads)

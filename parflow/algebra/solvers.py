@@ -296,14 +296,8 @@ def check_options(cmdline: set[str] | None = None, prefixes=tuple(PREFIXES)) -> 
 
 
 def check_options_on(comm, cmdline: set[str] | None = None) -> None:
-    """:func:`check_options` on rank 0, its InputError raised on every rank.  SLEPc is
-    imported on every rank first when eigensolver options are given: its initialisation and
-    finalisation are collective, and a SLEPc started on rank 0 alone hangs the exit."""
-    if options_under("spec_"):
-        try:
-            from slepc4py import SLEPc  # noqa: F401  (initialises SLEPc on every rank)
-        except ImportError:
-            pass
+    """:func:`check_options` on rank 0, its InputError raised on every rank (SLEPc, which
+    eigensolver options need, is initialised on every rank at start-up: cli.init_petsc)."""
     collective(comm, check_options, cmdline)
 
 

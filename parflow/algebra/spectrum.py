@@ -94,11 +94,14 @@ class LowSpectrum:
 
 
 def init_slepc() -> None:
-    """Initialise SLEPc here, on every rank that calls this (collectively), rather than where
-    omega_min first asks for it.  SLEPc's finalisation at interpreter exit is collective on
-    COMM_WORLD: with solver.parallel = "threads" only rank 0 computes omega_min, and with
-    SLEPc initialised on rank 0 alone that rank hung at exit (the others in MPI_Finalize)."""
-    from slepc4py import SLEPc  # noqa: F401
+    """Initialise SLEPc on every rank at start-up (cli.init_petsc), not where omega_min first
+    asks for it: SLEPc's finalisation at interpreter exit is collective on COMM_WORLD, and a
+    SLEPc started on some ranks only hangs the exit (solver.parallel = "threads": omega_min
+    on rank 0 alone; rank 0 hung in finalisation, the others in MPI_Finalize).  ~10 ms."""
+    try:
+        from slepc4py import SLEPc  # noqa: F401
+    except ImportError:             # (omega_min then fails where it is asked for)
+        pass
 
 
 def omega_from_lambda(lam: np.ndarray) -> np.ndarray:
