@@ -10,6 +10,16 @@ singular active sets, collisions, and the machine's load when each run ended.
 
     python benchmarks/bench_suspension.py --from-runs out/fig6_suspension_phi0.8*.h5
     python benchmarks/bench_suspension.py --phi 0.820,0.830,0.840 [--ranks 1]
+
+The step-size trade (``--dmax``: the largest non-affine displacement per step, model.dmax)
+runs one scene at each dmax and writes docs/benchmarks/suspension_dmax.json: speed, steps,
+retries, and the step-error indicators -- the share of sigma from gaps closed within a step
+(gap work; it vanishes with the step), mu = sigma/p and sigma's medians over strain windows:
+
+    python benchmarks/bench_suspension.py --dmax 0.04,0.02,0.01,0.005 --phi 0.840 \
+        --seed 2 --strain 0.12
+    python benchmarks/bench_suspension.py --dmax 0.04,0.02,0.01,0.005 --phi 0.820 \
+        --seed 1 --strain 1.5 --from-strain 0.5
 """
 from __future__ import annotations
 
@@ -71,6 +81,90 @@ def summarise(path: str, transient: float = 3.0) -> dict:
     return rec
 
 
+def step_error(path: str, from_strain: float = 0.0, windows: int = 3) -> dict:
+    """Step-size indicators of a suspension run past ``from_strain``: the gap work's share of
+    sigma (strain-weighted), medians of sigma over ``windows`` equal strain windows, medians of
+    mu and pressure, infeasible retries and mean step."""
+    with h5py.File(path) as f:
+        ts = {k: f["timeseries"][k][()] for k in f["timeseries"]}
+        retries = int(f.attrs.get("infeasible_reductions", -1))
+    g = ts["strain"]
+    m = (ts["step"] > 0) & (g > from_strain)
+    dg, sig = ts["dgamma"][m], ts["sigma"][m]
+    edges = np.linspace(from_strain, float(g[-1]), windows + 1)
+    med = [float(np.median(ts["sigma"][m & (g > a) & (g <= b)])) for a, b in zip(edges, edges[1:])]
+    return dict(from_strain=from_strain, steps_measured=int(m.sum()),
+                gap_work_share=round(float(-np.sum(ts["gap_work"][m] * dg) / np.sum(sig * dg)), 4),
+                sigma_mean=round(float(np.sum(sig * dg) / np.sum(dg)), 2),
+                sigma_window_medians=[round(x, 1) for x in med],
+                pressure_mean=round(float(np.sum(ts["pressure"][m] * dg) / np.sum(dg)), 2),
+                mu_median=round(float(np.median(ts["mu"][m])), 4),
+                mean_dgamma_measured=float(np.mean(dg)), infeasible_retries=retries,
+                max_overlap=float(np.max(ts["max_overlap"])))
+
+
+SCENE_DMAX = """title = "dmax trade: N = {n}, phi = {phi}, seed {seed}, dmax = {dmax}"
+seed = {seed}
+[model]
+name = "suspension"
+N = {n}
+phi = {phi}
+dmax = {dmax}
+[[protocol.leg]]
+direction = "forward"
+strain = {strain}
+[observables]
+omega_min_every = 0
+[output]
+path = "{out}"
+progress_seconds = 60
+"""
+
+
+def dmax_trade(a) -> None:
+    """The suspension from rest (the Figs. 6-7 preparation, no analyses) at each dmax of
+    ``a.dmax``, or the files given with --from-runs; docs/benchmarks/suspension_dmax.json."""
+    if a.from_runs is None:
+        paths = []
+        for d in a.dmax.split(","):
+            out = os.path.join(ROOT, "out", f"bench_suspension_phi{a.phi}_dmax{d}.h5")
+            scene = out[:-3] + ".toml"
+            with open(scene, "w") as fh:
+                fh.write(SCENE_DMAX.format(n=a.n, phi=a.phi, seed=a.seed, dmax=float(d),
+                                           strain=a.strain, out=out))
+            run(scene, out, a.ranks)
+            paths.append(out)
+        cmd = (f"python3 benchmarks/bench_suspension.py --dmax {a.dmax} --phi {a.phi} "
+               f"--n {a.n} --seed {a.seed} --strain {a.strain} --from-strain {a.from_strain}")
+    else:
+        paths = a.from_runs
+        cmd = ("python3 benchmarks/bench_suspension.py --dmax - --from-strain "
+               f"{a.from_strain} --from-runs " + " ".join(paths))
+    recs = []
+    for x in paths:
+        with h5py.File(x) as f:
+            dmax = float(f["model"].attrs["dmax"])
+        r = summarise(x, transient=np.inf)
+        r.update(dmax=dmax, **step_error(x, a.from_strain))
+        recs.append(r)
+    recs.sort(key=lambda r: (r["phi"], -r["dmax"]))
+    name = "suspension_dmax" if a.name is None else a.name
+    old = {}
+    if os.path.exists(results.path(name)):
+        import json
+        with open(results.path(name)) as fh:
+            old = json.load(fh)
+    sets = [s for s in old.get("sets", []) if s.get("command") != cmd]
+    sets.append(dict(command=cmd, date=time.strftime("%Y-%m-%d %H:%M:%S"),
+                     loadavg=list(os.getloadavg()), results=recs))
+    data = dict(benchmark="hard-disc suspension, N = 4096: the step-size trade (model.dmax)",
+                note="one sample a dmax: the flow is chaotic, so the trajectories differ "
+                     "after a few steps; speeds of runs that shared the 2 cores with other jobs "
+                     "(see loadavg_end) are upper bounds on the time",
+                sets=sets)
+    print(results.write(name, data))
+
+
 def run(scene: str, out: str, ranks: int) -> None:
     cmd = [sys.executable, "-m", "parflow.shear", scene, "--output", out, "--overwrite",
            "--quiet", "--no-plots"]
@@ -84,7 +178,21 @@ def main():
     p.add_argument("--from-runs", nargs="*", default=None, help="summarise these run files")
     p.add_argument("--phi", default="0.820,0.830,0.840")
     p.add_argument("--ranks", type=int, default=1)
+    p.add_argument("--dmax", default=None,
+                   help="comma-separated dmax values: the step-size trade (one --phi)")
+    p.add_argument("--seed", type=int, default=1, help="with --dmax: the scene's seed")
+    p.add_argument("--n", type=int, default=4096, help="with --dmax: number of discs")
+    p.add_argument("--strain", type=float, default=0.12, help="with --dmax: strain run")
+    p.add_argument("--from-strain", type=float, default=0.0,
+                   help="with --dmax: the indicators are taken past this strain")
+    p.add_argument("--name", default=None, help="with --dmax: the JSON's name "
+                   "(default suspension_dmax)")
     a = p.parse_args()
+    if a.dmax is not None:
+        if "," in a.phi and a.from_runs is None:
+            p.error("--dmax takes one --phi, e.g. --phi 0.840")
+        dmax_trade(a)
+        return
     load0 = os.getloadavg()
     if a.from_runs is None:
         paths = []

@@ -159,6 +159,39 @@ def suspension_section(d):
     return out
 
 
+def suspension_dmax_section(d):
+    out = ["## Hard-disc suspension: the step size (`bench_suspension.py --dmax`)", "",
+           "The suspension from rest at each `model.dmax` (the largest non-affine displacement "
+           "a step may make, in a0; the step is min(c/σ, dmax/max|V_na|, ...)), one sample "
+           "each, same seed (the flow is chaotic: the trajectories part after a few steps, so "
+           "σ is compared statistically).  Step-error indicators: the gap work's share of σ "
+           "(the dissipation of gaps closed within a step: it vanishes with the step) and "
+           "μ = σ/p; seconds per unit strain = the cost.  One process; the other core ran "
+           "another job (load at end).", ""]
+    for st in d["sets"]:
+        rs = st["results"]
+        r0 = rs[0]
+        out += [f"`{st['command']}` (measured {st['date'][:16]}; indicators past strain "
+                f"{r0['from_strain']:g}):", "",
+                "| φ | dmax | steps | strain | s / unit strain | ms / step (LCP) | ⟨Δγ⟩ | "
+                "factorisations / step | solves / step | infeasible retries | gap work / σ | "
+                "⟨σ⟩ | σ medians (windows) | μ (median) | max overlap | load at end |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in rs:
+            out.append(f"| {r['phi']:.3f} | {r['dmax']:g} | {r['steps']} | {r['strain']:.3g} | "
+                       f"{r['window_seconds'] / r['window_strain']:.0f} | "
+                       f"{1e3 / r['steps_per_second']:.0f} ({r['ms_lcp']:.0f}) | "
+                       f"{r['mean_dgamma']:.2e} | {r['factorizations_per_step']:.2f} | "
+                       f"{r['lcp_iterations_per_step']:.1f} | {r['infeasible_retries']} | "
+                       f"{r['gap_work_share']:.3f} | {r['sigma_mean']:.4g} | "
+                       f"{', '.join(f'{x:.4g}' for x in r['sigma_window_medians'])} | "
+                       f"{r['mu_median']:.3f} | {r['max_overlap']:.1e} | "
+                       f"{', '.join(f'{x:.1f}' for x in r['loadavg_end'])} |")
+        out.append("")
+    out += [d["note"] + ".", ""]
+    return out
+
+
 def _measured_at(d) -> list:
     """The closing line of a section whose JSON has ``measured`` and ``loadavg``."""
     return ["", f"Measured {d['measured']}, load average {', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
@@ -646,7 +679,8 @@ def main():
     for name, fn in (("force", force_section), ("chain_fig2", chain_section),
                      ("tradeoff", tradeoff_section), ("spectrum", spectrum_section),
                      ("packing", packing_section), ("correlation", correlation_section),
-                     ("suspension", suspension_section), ("lcp", lcp_section),
+                     ("suspension", suspension_section),
+                     ("suspension_dmax", suspension_dmax_section), ("lcp", lcp_section),
                      ("lcp_strategies", lcp_strategies_section),
                      ("lcp_factors", lcp_factors_section),
                      ("network_control_N4096", network_control_section),
