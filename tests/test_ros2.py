@@ -111,6 +111,8 @@ def test_ros2_is_more_accurate_in_fewer_steps_and_second_order(mpi_tmp_path):
         np.testing.assert_allclose(r["sigma_tb"], r["sigma"], rtol=1e-8)
         assert r["rejected"].sum() <= 0.1 * r["step"][-1]
         assert attrs["krylov_iterations"] > 0
+        causes = ("error", "growth", "solve", "projection")      # rejections by cause
+        assert sum(int(attrs[f"rejected_{c}"]) for c in causes) == r["rejected"].sum()
         if tol == 0.05:
             assert errs[tol] <= _error(heun, ref)                   # more accurate ...
             assert 3 * steps(r) < steps(heun)                        # ... in far fewer steps
