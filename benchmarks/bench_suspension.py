@@ -24,6 +24,7 @@ retries, and the step-error indicators -- the share of sigma from gaps closed wi
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -84,16 +85,17 @@ def summarise(path: str, transient: float = 3.0) -> dict:
 def step_error(path: str, from_strain: float = 0.0, windows: int = 3) -> dict:
     """Step-size indicators of a suspension run past ``from_strain``: the gap work's share of
     sigma (strain-weighted), medians of sigma over ``windows`` equal strain windows, medians of
-    mu and pressure, infeasible retries and mean step."""
+    mu and pressure, infeasible retries, mean step, and the run's dmax."""
     with h5py.File(path) as f:
         ts = {k: f["timeseries"][k][()] for k in f["timeseries"]}
         retries = int(f.attrs.get("infeasible_reductions", -1))
+        dmax = float(f["model"].attrs["dmax"])
     g = ts["strain"]
     m = (ts["step"] > 0) & (g > from_strain)
     dg, sig = ts["dgamma"][m], ts["sigma"][m]
     edges = np.linspace(from_strain, float(g[-1]), windows + 1)
     med = [float(np.median(ts["sigma"][m & (g > a) & (g <= b)])) for a, b in zip(edges, edges[1:])]
-    return dict(from_strain=from_strain, steps_measured=int(m.sum()),
+    return dict(dmax=dmax, from_strain=from_strain, steps_measured=int(m.sum()),
                 gap_work_share=round(float(-np.sum(ts["gap_work"][m] * dg) / np.sum(sig * dg)), 4),
                 sigma_mean=round(float(np.sum(sig * dg) / np.sum(dg)), 2),
                 sigma_window_medians=[round(x, 1) for x in med],
@@ -142,16 +144,13 @@ def dmax_trade(a) -> None:
                f"{a.from_strain} --from-runs " + " ".join(paths))
     recs = []
     for x in paths:
-        with h5py.File(x) as f:
-            dmax = float(f["model"].attrs["dmax"])
         r = summarise(x, transient=np.inf)
-        r.update(dmax=dmax, **step_error(x, a.from_strain))
+        r.update(step_error(x, a.from_strain))
         recs.append(r)
     recs.sort(key=lambda r: (r["phi"], -r["dmax"]))
     name = "suspension_dmax" if a.name is None else a.name
     old = {}
     if os.path.exists(results.path(name)):
-        import json
         with open(results.path(name)) as fh:
             old = json.load(fh)
     sets = [s for s in old.get("sets", []) if s.get("command") != cmd]

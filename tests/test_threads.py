@@ -82,9 +82,10 @@ def test_threads_usr1_stops_the_run_with_a_checkpoint(tmp_path):
 
 
 def test_threads_run_with_omega_min_exits(tmp_path):
-    """omega_min initialises SLEPc on rank 0 alone; SLEPc's finalisation at exit is collective,
-    so the other ranks must have it too, or rank 0 hangs after the run (it did, with the
-    others in MPI_Finalize).  A hang ends this test in its timeout."""
+    """In threads mode omega_min runs on rank 0 alone, while SLEPc's finalisation at exit is
+    collective: SLEPc must be initialised on every rank (cli.init_petsc), or rank 0 hangs
+    after the run (it did, with the others in MPI_Finalize).  A hang ends this test in its
+    timeout."""
     scene = tmp_path / "omega.toml"
     scene.write_text(SCENE.format(parallel="threads", network="")
                      + "[observables]\nomega_min_every = 5\n")
