@@ -194,6 +194,10 @@ def _check_contacts_checkpoint(g, ck, init, s, bad) -> None:
         bad(f"/checkpoint/active_keys are not contact keys i N + j of N = {n} discs")
     if ck.get("dgamma", 0.0) < 0:
         bad(f"dgamma = {ck['dgamma']:g} < 0")
+    if "phi" in g.attrs:                # a run that compresses while it shears
+        phi = np.asarray(g.attrs["phi"])
+        if phi.ndim != 0 or not np.issubdtype(phi.dtype, np.floating) or not 0 < float(phi) < 1:
+            bad(f"checkpoint attribute phi = {g.attrs['phi']!r} is not a packing fraction in (0, 1)")
     for k in ("sigma", "vmax", "max_overlap", "collisions", "singular_events", "infeasible_reductions"):
         if ck[k] < 0:
             bad(f"{k} = {ck[k]:g} < 0")

@@ -98,6 +98,9 @@ def load_run_state(path: str, which: str = "checkpoint"):
         if not run.has_checkpoint:
             raise InputError(f"prepare: {path!r} has no checkpoint (use --from initial)")
         ck = run.checkpoint()
+        if "phi" in ck:             # a run that compressed while shearing: the swollen radii
+            phi0 = np.pi * np.sum(radii ** 2) / abs(np.linalg.det(h0))
+            radii = radii * np.sqrt(float(ck["phi"]) / phi0)
         return ck["s"], h0, float(ck["gamma"]), radii, int(ck["step"])
 
 

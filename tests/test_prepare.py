@@ -146,3 +146,25 @@ def test_ensemble_folder_compressed_into_one_start_per_sample(tmp_path):
                                                            strain=0.01).replace("[ensemble]\nsamples = 3\n", ""))
     res = run(tmp_path / "d.toml", "--output", tmp_path / "one.h5", "--quiet", "--no-plots")
     assert res.returncode == 2 and "only an ensemble fills in" in res.stderr
+
+
+def test_run_state_of_a_compressing_run_has_its_swollen_radii(tmp_path):
+    """A run that compressed while shearing (phi 0.76 -> 0.77 over its 1.0 strain): prepare
+    reads the checkpoint with the radii of the checkpoint's phi, not the initial ones, and
+    compresses that flowing state further."""
+    from systems import run_scene
+    from parflow.scene import load_scene
+    run = tmp_path / "r.h5"
+    scene = load_scene(f'seed = 2\n[model]\nname = "suspension"\nN = 96\nphi = 0.76\n'
+                       f'compress_rate = 0.01\ncompress_to = 0.80\n'
+                       f'[[protocol.leg]]\ndirection = "forward"\nstrain = 1.0\n'
+                       f'[output]\npath = "{run}"\n')
+    assert run_scene(scene) == "complete"
+    s, h0, gamma, radii, _ = prepare.load_run_state(str(run))
+    assert gamma == pytest.approx(1.0, abs=1e-12)
+    assert np.pi * np.sum(radii ** 2) / abs(np.linalg.det(h0)) == pytest.approx(0.77, abs=1e-12)
+    X = prepare.rectangular_positions(s, h0, gamma)
+    state = su.from_configuration(X, radii, np.diag(h0), 0.0)   # no overlap at these radii
+    assert state.meta["phi"] == pytest.approx(0.77, abs=1e-12)
+    pos, box1, info = prepare.compress(X, radii, np.diag(h0), 0.78)
+    assert info["phi0"] == pytest.approx(0.77, abs=1e-12)

@@ -211,6 +211,36 @@ def test_restart_same_trajectory(dense):
     assert a.sigma == b.sigma and a.steps == b.steps and a.collisions == b.collisions
 
 
+def test_compression_while_shearing():
+    """compress_rate: the discs swell, R = R0 sqrt(phi/phi0), phi = phi0 + rate gamma until
+    compress_to, with no overlap (the swelling is in q) and sigma = sigma_fb + gap_work."""
+    st = msu.make_suspension(64, 0.78, seed=3)
+    r0 = st.radii.copy()
+    sim = hd.Suspension(st, compress_rate=0.2, compress_to=0.80)
+    phi0 = sim.phi
+    assert phi0 == pytest.approx(0.78, abs=1e-12)
+    phis = []
+    stats = sim.run(0.06, callback=lambda s, _: phis.append(s.phi))
+    np.testing.assert_allclose(phis, phi0 + 0.2 * np.array([s.gamma for s in stats]), rtol=0,
+                               atol=1e-13)
+    ck = sim.checkpoint()
+    stats += sim.run(0.09)
+    assert sim.phi == 0.80 and st.gamma == pytest.approx(0.15, abs=1e-12)
+    np.testing.assert_allclose(st.radii, r0 * np.sqrt(0.80 / phi0), rtol=1e-15)
+    assert np.pi * np.sum(st.radii ** 2) / st.volume == pytest.approx(0.80, abs=1e-14)
+    assert sim.max_overlap <= 1e-9 and hd.min_gap(st) >= -1e-9
+    for s in stats:
+        assert abs(s.sigma - (s.sigma_fb + s.gap_work)) <= 1e-8 * max(1, s.sigma)
+        assert s.lcp.min_w >= -1e-9
+    # restart in the middle of the compression = uninterrupted, bit for bit
+    b = hd.Suspension.restore(ck)
+    assert b.phi == phis[-1] and np.array_equal(b.state.radii, r0 * np.sqrt(b.phi / phi0))
+    b.run(0.09)
+    assert np.array_equal(b.state.s, st.s) and b.phi == sim.phi and b.sigma == sim.sigma
+    with pytest.raises(InputError, match="compress_to"):
+        hd.Suspension(msu.make_suspension(64, 0.78, seed=3), compress_rate=0.1, compress_to=0.7)
+
+
 @pytest.mark.parametrize("kw, msg", [
     (dict(phi=0.843), "jamming"), (dict(phi=0.9), "jamming"), (dict(phi=-0.1), "phi"),
     (dict(phi=0.8, ratio=0.0), "ratio"), (dict(phi=0.8, ratio=-1.4), "ratio"),

@@ -112,8 +112,45 @@ def test_two_ranks_equal_one_rank(comm, mpi_tmp_path):
     comm.barrier()
 
 
+def test_compressing_scene_restart_equals_uninterrupted(comm, mpi_tmp_path):
+    """A scene that compresses while it shears: phi per row (clipped at compress_to during
+    the reverse leg), in the checkpoint, and a restart mid-compression = uninterrupted."""
+    model = "compress_rate = 0.2\ncompress_to = 0.82"
+    full = str(mpi_tmp_path / "cfull.h5")
+    part = str(mpi_tmp_path / "cpart.h5")
+    assert run_scene(susp_scene(full, model=model, obs="")) == "complete"
+    assert run_scene(susp_scene(part, model=model, obs=""), max_steps=9) == "budget"
+    comm.barrier()
+    scene = load_scene(susp_scene(part, model=model, obs="")["text"])
+    assert run_scene(scene, restart=True, max_steps=10**6) == "complete"
+    comm.barrier()
+    with h5py.File(full) as a, h5py.File(part) as b:
+        ts = a["timeseries"]
+        g, phi = ts["gamma"][:], ts["phi"][:]
+        applied = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(g)))])
+        np.testing.assert_allclose(phi, np.minimum(0.80 + 0.2 * applied, 0.82), rtol=0, atol=1e-12)
+        assert phi[-1] == 0.82 and a["checkpoint"].attrs["phi"] == 0.82
+        assert a.attrs["max_overlap"] <= 1e-9
+        np.testing.assert_allclose(ts["sigma_fb"][:] + ts["gap_work"][:], ts["sigma"][:], rtol=1e-6)
+        for q in ("gamma", "sigma", "phi", "n_active"):
+            np.testing.assert_array_equal(ts[q][:], b["timeseries"][q][:])
+        np.testing.assert_array_equal(a["checkpoint/s"][:], b["checkpoint/s"][:])
+    comm.barrier()
+
+
+@pytest.mark.parametrize("params, msg", [
+    (dict(compress_rate=0.1), "go together"), (dict(compress_to=0.83), "go together"),
+    (dict(compress_rate=0.1, compress_to=0.79), "above model.phi"),
+])
+def test_bad_compression(params, msg):
+    with pytest.raises(InputError, match=msg):
+        msu.build(dict(N=64, phi=0.80, **params), 1)
+
+
 @pytest.mark.parametrize("model, msg", [
     ("phi = 0.85", "phi_J"),
+    ("compress_to = 0.9", "compress_to"),
+    ("compress_rate = 2.0", "compress_rate"),
     ("ratio = 0.0", "ratio"),
     ("small_fraction = 1.5", "small_fraction"),
     ("factor = 'lu'", "factor"),

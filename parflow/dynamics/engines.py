@@ -228,7 +228,8 @@ class ContactEngine:
                 vmax=ck["vmax"], last_dg=ck.get("dgamma", 0.0), active_keys=ck["active_keys"],
                 steps=ck["steps"], collisions=ck["collisions"], max_overlap=ck["max_overlap"],
                 singular_events=ck["singular_events"],
-                infeasible_reductions=ck["infeasible_reductions"], controls=controls))
+                infeasible_reductions=ck["infeasible_reductions"], controls=controls,
+                **({"phi": ck["phi"]} if "phi" in ck else {})))
             self.state = self.sim.state
             self.state.meta.update(state.meta)
         self.stats = None
@@ -249,7 +250,11 @@ class ContactEngine:
         return "replicated"
 
     def size_text(self) -> str:
-        return f"N = {self.state.n} discs, phi = {self.state.meta.get('phi', float('nan')):.4f}"
+        text = f"N = {self.state.n} discs, phi = {self.sim.phi:.4f}"
+        if self.sim.compressing:
+            text += (f" compressed at {self.sim.compress_rate:g} per unit strain to "
+                     f"{self.sim.compress_to:g}")
+        return text
 
     def describe(self) -> tuple[str, dict]:
         return f"contact LCP (active set on {self.sim.factor})", {}
@@ -270,7 +275,7 @@ class ContactEngine:
         direction = self._direction if direction is None else direction
         c, f, V, dg = sim.probe(direction)
         return ContactForce(st.gamma, st.h, c, f, V, stress.sigma(V, sim.omega), sim.omega,
-                            direction, stress.gap_work(f, c.gap, dg, sim.omega))
+                            direction, stress.gap_work(f, sim.end_gaps(c, dg), dg, sim.omega))
 
     def start(self):
         self.F = self.probe(+1)
@@ -302,6 +307,12 @@ class ContactEngine:
         return obs
 
     def row(self) -> dict:
+        row = self._row()
+        if self.sim.compress_rate > 0:          # a run that compresses: phi per row
+            row["phi"] = self.sim.phi
+        return row
+
+    def _row(self) -> dict:
         st = self.stats
         if st is None:
             # the first row, before any step: sigma and sigma_fb are those of the forces
@@ -349,6 +360,8 @@ class ContactEngine:
                                     "singular_events", "infeasible_reductions")}
         attrs["direction"] = self._direction
         attrs["dgamma"] = ck["last_dg"]
+        if self.sim.compress_rate > 0:
+            attrs["phi"] = ck["phi"]
         return arrays, attrs
 
     def on_jammed(self) -> None:

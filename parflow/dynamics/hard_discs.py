@@ -14,6 +14,12 @@ A "catching-up" scheme (Maury & Venel; Lerner, Düring & Wyart 2013), for a stra
   overlaps can only come from round-off, the LCP tolerance, or a pair outside the list,
   which the step bound dg (2 R_max + skin + 2 max|V_na|) < skin excludes.
 
+Compression while shearing (``compress_rate`` > 0): the discs swell, R_i = R0_i sqrt(phi/phi0),
+phi growing by compress_rate per unit strain applied until it reaches ``compress_to``.  In the
+step the gaps are those at the end radii, q = b + (h - dR)/dg, so the constraint stays
+conservative; sigma = sigma_fb + gap_work holds with the gap work of the end gaps (the work
+of swelling against the contact forces included).
+
 Step size: min(dg_max, c/sigma, dmax/max|V|, MAX_GROWTH x the last step, the leg's cap);
 an infeasible LCP divides it by 10, an oversized displacement by 2; below dg_min with an
 infeasible LCP the suspension is declared shear-jammed (:class:`ShearJammed`) only if a
@@ -102,11 +108,13 @@ class Suspension:
     """Stepper for a hard-disc suspension state (radii set, no bonds)."""
 
     # the step controls: keyword arguments of __init__, keys of the model's [model] table
-    CONTROLS = ("skin", "c", "dmax", "dg_max", "dg_min", "factor", "collision_gap")
+    CONTROLS = ("skin", "c", "dmax", "dg_max", "dg_min", "factor", "collision_gap",
+                "compress_rate", "compress_to")
 
     def __init__(self, state: State, *, skin: float = DEFAULT_SKIN, c: float = 0.05,
                  dmax: float = 0.01, dg_max: float = 1e-2, dg_min: float = 1e-12,
                  factor: str = "cholmod", collision_gap: float = 1e-4,
+                 compress_rate: float = 0.0, compress_to: float = 0.0,
                  overlap_tol: float = 1e-12):
         if state.radii is None:
             raise InputError("suspension: the state has no radii")
@@ -126,6 +134,19 @@ class Suspension:
         self.infeasible_reductions = 0
         self.upward_searches = 0       # steps that searched above their first size
         self.omega = state.volume
+        # compression while shearing: the discs swell, R_i = R0_i sqrt(phi / phi0), so that
+        # phi grows by compress_rate per unit strain applied until it reaches compress_to
+        # (in the cell's frame this is an affine compression the solvent follows: the
+        # growth adds no non-affine velocity of its own, it only closes gaps)
+        self.radii0 = np.array(state.radii, float)
+        self.phi0 = float(np.pi * np.sum(self.radii0 ** 2) / self.omega) if state.d == 2 else math.nan
+        self.phi = self.phi0
+        if not (math.isfinite(compress_rate) and compress_rate >= 0):
+            raise InputError(f"suspension: compress_rate must be >= 0, got {compress_rate!r}")
+        if compress_rate > 0 and not self.phi0 < compress_to:
+            raise InputError(f"suspension: compress_to = {compress_to:g} must lie above the "
+                             f"initial packing fraction {self.phi0:.6g} when compress_rate > 0")
+        self.compress_rate, self.compress_to = float(compress_rate), float(compress_to)
         self.max_overlap = max(0.0, -min_gap(state))
         self.sigma = 0.0
         self.vmax = 0.0
@@ -158,11 +179,43 @@ class Suspension:
     def _keys(self, c: Candidates) -> np.ndarray:
         return c.i * self.state.n + c.j
 
+    @property
+    def compressing(self) -> bool:
+        """True while the discs still swell toward compress_to."""
+        return self.compress_rate > 0 and self.phi < self.compress_to
+
+    def _phi_after(self, dg: float) -> float:
+        """The packing fraction after a step of strain magnitude ``dg``."""
+        if not self.compressing:
+            return self.phi
+        return min(self.compress_to, self.phi + self.compress_rate * dg)
+
+    def _swell(self, dg: float) -> float:
+        """How much every radius grows in a step ``dg``, per unit R0: R_i' - R_i = k R0_i."""
+        phi1 = self._phi_after(dg)
+        if phi1 == self.phi:
+            return 0.0
+        return math.sqrt(phi1 / self.phi0) - math.sqrt(self.phi / self.phi0)
+
+    def set_phi(self, phi: float) -> None:
+        """Swell (or shrink) the discs to packing fraction ``phi``: R = R0 sqrt(phi / phi0)."""
+        self.phi = float(phi)
+        self.state.radii = self.radii0 * math.sqrt(self.phi / self.phi0)
+        self.state.meta["phi"] = self.phi
+
+    def end_gaps(self, c: Candidates, dg: float) -> np.ndarray:
+        """The candidates' gaps with the radii at the end of a step ``dg`` (the gaps
+        themselves unless the discs swell)."""
+        k = self._swell(dg)
+        if k == 0.0:
+            return c.gap
+        return c.gap - k * (self.radii0[c.i] + self.radii0[c.j])
+
     def forces(self, c: Candidates, dg: float, direction: int = 1):
         """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
         -1 reversed flow: the affine rates change sign, b -> -b)."""
         S = rigidity_csr(c.n, c.i, c.j, self.state.n)
-        q = direction * c.b + c.gap / dg
+        q = direction * c.b + self.end_gaps(c, dg) / dg
         warm = np.isin(self._keys(c), self._active_keys)
         f, info = solve_lcp(S, q, warm, factor=self.factor)
         V = (S.T @ f).reshape(self.state.n, self.state.d)
@@ -226,7 +279,9 @@ class Suspension:
                 feasible, vmax, why = False, math.inf, f"{exc} at dg = {dg:.3g}"
             if feasible:
                 vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
-                if dg * (sig_max + self.skin + 2 * vmax) < self.skin and dg * vmax <= 2 * self.dmax:
+                swell = 2.0 * self._swell(dg) * float(self.radii0.max())
+                if (dg * (sig_max + self.skin + 2 * vmax) + swell < self.skin
+                        and dg * vmax <= 2 * self.dmax):
                     break
             else:
                 self.infeasible_reductions += 1
@@ -262,6 +317,10 @@ class Suspension:
         st.s = st.s + dg * V @ np.linalg.inv(h_new).T
         st.s -= np.floor(st.s)
         st.gamma += direction * dg
+        gap_end = self.end_gaps(c, dg)
+        phi1 = self._phi_after(dg)
+        if phi1 != self.phi:
+            self.set_phi(phi1)
         active = f > 0
         self._active_keys = self._keys(c)[active]
         n_new = int(np.count_nonzero(active & ~warm))
@@ -271,7 +330,7 @@ class Suspension:
         omega = self.omega
         sigma = stress.sigma(V, omega)
         stats = StepStats(st.gamma, dg, sigma, stress.sigma_tb(f, c.b, omega, direction),
-                          stress.gap_work(f, c.gap, dg, omega),
+                          stress.gap_work(f, gap_end, dg, omega),
                           stress.pressure(f, c.dist, omega, st.d), len(c), int(active.sum()),
                           n_new, n_coll, overlap, info,
                           dict(search=t1 - t0, lcp=t2 - t1, update=time.perf_counter() - t2))
@@ -300,7 +359,10 @@ class Suspension:
         dg = tried[-1] if dg is None else dg
         S = rigidity_csr(c.n, c.i, c.j, st.n)
         v_adm = math.sqrt(st.n) * min(2 * self.dmax, 0.5 * self.skin) / dg
-        cert = compressed_self_stress(S, direction * c.b, c.gap, dg, v_adm)
+        # swelling discs close every gap at the rate (R_i' + R_j' - R_i - R_j) / dg: part of
+        # the affine closing rate b (q = b + h/dg as the LCP's)
+        b = direction * c.b - (c.gap - self.end_gaps(c, dg)) / dg
+        cert = compressed_self_stress(S, b, c.gap, dg, v_adm)
         cert.rec = dict(cert.record(), gamma=float(st.gamma), direction=int(direction),
                         dg_min=float(self.dg_min), n_candidates=len(c))
         return cert
@@ -368,8 +430,8 @@ class Suspension:
         """Everything a bit-identical continuation needs: the state, the step-control memory
         (sigma, max |V_na| of the last step) and the warm active set, keyed by (i, j)."""
         st = self.state
-        return dict(s=st.s.copy(), h0=st.h0.copy(), gamma=float(st.gamma), radii=st.radii.copy(),
-                    sigma=self.sigma, vmax=self.vmax, last_dg=self.last_dg,
+        return dict(s=st.s.copy(), h0=st.h0.copy(), gamma=float(st.gamma), radii=self.radii0.copy(),
+                    sigma=self.sigma, vmax=self.vmax, last_dg=self.last_dg, phi=self.phi,
                     active_keys=self._active_keys.copy(),
                     steps=self.steps, collisions=self.collisions, max_overlap=self.max_overlap,
                     singular_events=self.singular_events,
@@ -378,6 +440,8 @@ class Suspension:
                     controls=dict(skin=self.skin, c=self.c, dmax=self.dmax, dg_max=self.dg_max,
                                   dg_min=self.dg_min, factor=self.factor,
                                   collision_gap=self.collision_gap,
+                                  compress_rate=self.compress_rate,
+                                  compress_to=self.compress_to,
                                   overlap_tol=self.overlap_tol))
 
     @classmethod
@@ -389,6 +453,8 @@ class Suspension:
         sim = cls(state, **ck["controls"])
         sim.sigma, sim.vmax = float(ck["sigma"]), float(ck["vmax"])
         sim.last_dg = float(ck.get("last_dg", 0.0))
+        if "phi" in ck and float(ck["phi"]) != sim.phi:
+            sim.set_phi(float(ck["phi"]))       # the radii of a run that compresses
         sim._active_keys = np.array(ck["active_keys"], np.int64)
         sim.steps, sim.collisions = int(ck["steps"]), int(ck["collisions"])
         sim.max_overlap = max(sim.max_overlap, float(ck["max_overlap"]))

@@ -66,6 +66,11 @@ PARAMS = {
     "dmax": (float, 0.01, lambda v: v > 0, "largest non-affine displacement per step in a0 (> 0)"),
     "dg_max": (float, 1e-2, lambda v: v > 0, "largest strain step (> 0)"),
     "dg_min": (float, 1e-12, lambda v: v > 0, "smallest strain step before shear jamming is declared (> 0)"),
+    "compress_rate": (float, 0.0, lambda v: 0.0 <= v <= 1.0,
+                      "packing fraction gained per unit strain while the suspension flows, in "
+                      "[0, 1] (0: fixed phi; the discs swell until phi = compress_to)"),
+    "compress_to": (float, 0.0, lambda v: v == 0.0 or 0.0 < v < PHI_J,
+                    f"packing fraction where the compression stops, in (phi, {PHI_J}) (0: none)"),
     "factor": (str, "cholmod", lambda v: v in FACTORS, f"one of {list(FACTORS)}: factorisation of N_AA"),
     "collision_gap": (float, 1e-4, lambda v: v > 0,
                       "a new contact counts as a collision when its gap was above this (a0, > 0)"),
@@ -94,6 +99,12 @@ def build(params: dict, seed: int) -> State:
     p = _defaults(params)
     if p["dg_min"] >= p["dg_max"]:
         raise InputError("model.dg_min must be smaller than model.dg_max")
+    if (p["compress_rate"] > 0) != (p["compress_to"] > 0):
+        raise InputError("model.compress_rate and model.compress_to go together: set both "
+                         "(compression while shearing) or neither")
+    if p["compress_rate"] > 0 and not p["compress_to"] > p["phi"]:
+        raise InputError(f"model.compress_to = {p['compress_to']:g} must be above model.phi = "
+                         f"{p['phi']:g} (the packing fraction the flow starts from)")
     check_mixture(p["ratio"], (p["small_fraction"], 1.0 - p["small_fraction"]))
     if p["configuration_file"]:
         state = load_configuration(p["configuration_file"], p)
