@@ -196,10 +196,11 @@ class Run:
             now = time.monotonic()
             frac = leg.fraction(obs, leg_obs0, clock.leg_strain, clock.leg_steps)
             rate = (clock.step - leg_step0) / max(now - leg_t0, 1e-9)
-            log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s"
+            log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s%s"
                      "  %.1f steps/s  leg ETA %s", clock.step, clock.leg + 1, len(legs),
                      "fwd" if leg.direction > 0 else "rev", eng.gamma, obs["sigma"], obs["V2"],
-                     abs(dgamma), f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
+                     abs(dgamma), f"  phi={obs['phi']:.5f}" if "phi" in obs else "",
+                     f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
                      rate, hms(eta.update(now, frac, clock.step)))
 
         def failed(exc):

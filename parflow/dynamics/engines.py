@@ -303,16 +303,12 @@ class ContactEngine:
         sim, F = self.sim, self.F
         obs = dict(sigma=F.sigma, V2=stress.V2(F.V_na), max_overlap=sim.max_overlap,
                    collisions=sim.collisions)
+        if sim.compress_rate > 0:               # a run that compresses: phi per row
+            obs["phi"] = sim.phi
         obs.update(self.model.observables(self.state, F))
         return obs
 
     def row(self) -> dict:
-        row = self._row()
-        if self.sim.compress_rate > 0:          # a run that compresses: phi per row
-            row["phi"] = self.sim.phi
-        return row
-
-    def _row(self) -> dict:
         st = self.stats
         if st is None:
             # the first row, before any step: sigma and sigma_fb are those of the forces
