@@ -113,8 +113,11 @@ def build(params: dict, seed: int) -> State:
                                 composition=(p["small_fraction"], 1.0 - p["small_fraction"]))
     state.meta.update(model="suspension", phi_target=float(p["phi"]), ratio=float(p["ratio"]),
                       small_fraction=float(p["small_fraction"]))
+    # (the compression keys only when the run compresses: a run at fixed phi records what
+    # it recorded before they existed)
+    skip = ("compress_rate", "compress_to") if p["compress_rate"] == 0 else ()
     state.meta.update({k: (int(v) if isinstance(v, bool) else v) for k, v in p.items()
-                       if k in Suspension.CONTROLS + _ANALYSIS_KEYS})
+                       if k in Suspension.CONTROLS + _ANALYSIS_KEYS and k not in skip})
     return state
 
 
