@@ -135,6 +135,18 @@ def test_compressing_scene_restart_equals_uninterrupted(comm, mpi_tmp_path):
         for q in ("gamma", "sigma", "phi", "n_active"):
             np.testing.assert_array_equal(ts[q][:], b["timeseries"][q][:])
         np.testing.assert_array_equal(a["checkpoint/s"][:], b["checkpoint/s"][:])
+    # the statistics belong to the phi of their window (the forward rows of the last half of
+    # the run's strain here: part of the compression, whose range the fits record), not to
+    # the scene's starting phi
+    from parflow.post.runs import load
+    from parflow.post.suspension import suspension_fits, window_rows
+    run = load(full)
+    fits = suspension_fits(run)
+    m = window_rows(run)
+    w = np.abs(run.ts["dgamma"][m])
+    assert fits["phi_range"] == (run.ts["phi"][m].min(), run.ts["phi"][m].max())
+    assert fits["phi_range"][0] > 0.81 and fits["phi_range"][1] == pytest.approx(0.816, abs=1e-12)
+    assert fits["phi"] == pytest.approx(np.sum(w * run.ts["phi"][m]) / np.sum(w), rel=1e-14)
     comm.barrier()
 
 

@@ -42,8 +42,14 @@ from .base import Run, Skip, figure, new_figure, reference, register_model
 register_model("suspension", fits=suspension_fits, across=suspension_across)
 
 
+def _phi_text(run: Run) -> str:
+    """phi of the scene, or phi -> compress_to for a run compressed while it flowed."""
+    to = run.param("compress_to", 0.0)
+    return f"{run.param('phi')}→{to}" if to else f"{run.param('phi')}"
+
+
 def _title(run: Run, what: str) -> str:
-    return (f"{what} — suspension N={run.param('N')}, φ={run.param('phi')}, "
+    return (f"{what} — suspension N={run.param('N')}, φ={_phi_text(run)}, "
             f"seed {run.scene.get('seed', '?')}")
 
 
@@ -219,7 +225,8 @@ def fig7a_correlation(run: Run, fits: dict):
 # ------------------------------------------------------------------------------ across runs
 
 def _across_title(runs, what):
-    phis = sorted(float(r.param("phi", math.nan)) for r in runs)
+    # (a run compressed while it flowed: the phi it reached)
+    phis = sorted(float(r.param("compress_to", 0.0) or r.param("phi", math.nan)) for r in runs)
     return f"{what} — suspension N={runs[0].param('N')}, φ = {phis[0]:.3f}–{phis[-1]:.3f} ({len(runs)} runs)"
 
 

@@ -105,6 +105,13 @@ def suspension_fits(run, relaxation=relaxation) -> dict:
                strain_window=(float(np.min(ts["strain"][m])) if m.any() else math.nan,
                               float(np.max(ts["strain"][m])) if m.any() else math.nan))
     dg = ts.get("dgamma", np.ones_like(ts["sigma"]))
+    if "phi" in ts and m.any():
+        # a run compressed while it flowed: its statistics belong to the window's phi (the
+        # strain-weighted mean if the window still holds part of the compression, which
+        # phi_range then shows: set observables.analysis_from_strain past it)
+        ph = np.asarray(ts["phi"], float)[m]
+        out["phi"] = float(ph[-1]) if ph.min() == ph.max() else _strain_weighted(ph, dg[m])
+        out["phi_range"] = (float(ph.min()), float(ph.max()))
     for q in ("sigma", "pressure", "mu", "z", "z_all", "z2"):
         if q in ts and m.any():
             mean, err = _mean_err(ts[q][m])
