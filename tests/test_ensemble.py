@@ -468,6 +468,31 @@ def test_jamming_rate_poisson():
     assert r["n_jammed"] == 3 and r["value"] == 3 / 2.0 and np.isclose(r["poisson_err"], np.sqrt(3) / 2)
 
 
+def test_jamming_rate_of_samples_compressed_while_flowing():
+    """A sample compressed while it flowed is exposed from the row where phi reached
+    compress_to; a jam before that is counted apart, not in the rate."""
+    from types import SimpleNamespace
+    from parflow.post.ensemble import jamming_rate, rate_exposure
+
+    def run(phi, status, strain):
+        return SimpleNamespace(ts=dict(strain=np.asarray(strain, float), phi=np.asarray(phi, float)),
+                               attrs=dict(status=status),
+                               param=lambda k, d=None: dict(compress_to=0.84).get(k, d))
+    reached = run([0.82, 0.83, 0.84, 0.84, 0.84], "jammed", [0.0, 0.5, 1.0, 1.2, 1.25])
+    ramp = run([0.82, 0.83, 0.835], "jammed", [0.0, 0.5, 0.75])
+    flowing = run([0.82, 0.84, 0.84], "complete", [0.0, 1.0, 2.0])
+    assert rate_exposure(reached) == (pytest.approx(0.25), False)
+    assert rate_exposure(ramp) == (0.0, True)
+    assert rate_exposure(flowing) == (pytest.approx(1.0), False)
+    plain = SimpleNamespace(ts=dict(strain=np.array([0.0, 0.3])), attrs=dict(status="jammed"),
+                            param=lambda k, d=None: d)
+    assert rate_exposure(plain) == (pytest.approx(0.3), False)
+    e = [rate_exposure(r) for r in (reached, ramp, flowing)]
+    r = jamming_rate(["jammed", "jammed", "complete"], [x[0] for x in e], [x[1] for x in e])
+    assert r["n_jammed"] == 1 and r["n_jammed_compressing"] == 1
+    assert r["value"] == pytest.approx(1 / 1.25) and r["strain"] == pytest.approx(1.25)
+
+
 @serial_only
 def test_plot_folder(serial, tmp_path):
     out = tmp_path / "figs"

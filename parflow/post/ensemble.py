@@ -482,15 +482,35 @@ def chain_ensemble_fit(curve, dgamma_typical) -> dict:
                                         window_lo=lo, window_hi=hi)}
 
 
-def jamming_rate(statuses, strains) -> dict:
+def jamming_rate(statuses, strains, compressing=None) -> dict:
     """Shear jams per unit strain: n_jammed / (the strain all samples ran, summed), with its
     Poisson error sqrt(n_jammed) / strain (a jam ends a sample: the strain it ran is its
-    exposure)."""
+    exposure).  ``compressing``: per sample, true if it jammed while it was still being
+    compressed (:func:`rate_exposure`; ``strains`` are then the strains at the final phi):
+    such jams are counted apart (``n_jammed_compressing``), not in the rate."""
     total = float(np.nansum(np.asarray(strains, float)))
-    n = int(sum(st == "jammed" for st in statuses))
+    ramp = [bool(c) for c in compressing] if compressing is not None else [False] * len(statuses)
+    n = int(sum(st == "jammed" and not c for st, c in zip(statuses, ramp)))
     rate = n / total if total > 0 else float("nan")
     return dict(value=rate, poisson_err=math.sqrt(n) / total if total > 0 else float("nan"),
-                n_jammed=n, strain=total, n=len(statuses))
+                n_jammed=n, strain=total, n=len(statuses), n_jammed_compressing=int(sum(ramp)))
+
+
+def rate_exposure(run) -> tuple[float, bool]:
+    """(the strain a sample ran at its final packing fraction, whether it jammed before it got
+    there).  A sample compressed while it flowed (a ``phi`` column) is exposed from the row
+    where phi reached ``compress_to``; any other sample over its whole strain."""
+    st = np.asarray(run.ts.get("strain", []), float)
+    if not st.size:
+        return 0.0, False
+    if "phi" not in run.ts:
+        return float(st[-1]), False
+    phi = np.asarray(run.ts["phi"], float)
+    to = float(run.param("compress_to", 0.0) or phi.max())
+    at = np.flatnonzero(phi >= to)
+    if not at.size:
+        return 0.0, run.attrs.get("status") == "jammed"
+    return float(st[-1] - st[at[0]]), False
 
 
 def summarise(folder: str) -> dict:
@@ -544,9 +564,14 @@ def summarise(folder: str) -> dict:
     ens = {}
     if "V2_forward" in curves:
         ens.update(chain_ensemble_fit(curves["V2_forward"], fits.get("dgamma_typical", [])))
+    if rs and any("phi" in r.ts for r in rs):        # compressed while flowing
+        expo = [rate_exposure(r) for r in rs]
+        scalars["rate_strain"] = np.array([e[0] for e in expo])
+        scalars["jammed_compressing"] = np.array([float(e[1]) for e in expo])
     if rs:
         ens["jamming_rate"] = jamming_rate([r.attrs.get("status") for r in rs],
-                                           scalars["final_strain"])
+                                           scalars.get("rate_strain", scalars["final_strain"]),
+                                           scalars.get("jammed_compressing"))
     return dict(model=model, index=np.array(index, dtype=np.int64), status=status,
                 seed=np.array(seeds, dtype=np.int64), used=used, scalars=scalars, fits=fits,
                 curves=curves, ensemble_fits=ens, scene=index_scene(folder))

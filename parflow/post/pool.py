@@ -129,9 +129,10 @@ def pool_summaries(paths) -> dict:
     if "V2_forward" in out["curves"]:
         ens.update(chain_ensemble_fit(out["curves"]["V2_forward"],
                                       out["fits"].get("dgamma_typical", [])))
-    strain = out["scalars"].get("final_strain")
+    strain = out["scalars"].get("rate_strain", out["scalars"].get("final_strain"))
     if strain is not None:
-        ens["jamming_rate"] = jamming_rate([status[k] for k in out["used"]], strain)
+        ens["jamming_rate"] = jamming_rate([status[k] for k in out["used"]], strain,
+                                           out["scalars"].get("jammed_compressing"))
     out["ensemble_fits"] = ens
     return out
 

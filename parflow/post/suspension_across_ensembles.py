@@ -70,6 +70,7 @@ import sys
 import numpy as np
 
 from .ensemble import (check_poolable, find_sources, finished_samples, jackknife, jamming_rate,
+                       rate_exposure,
                        mean_sem, nan_floats, read_table)
 from ..io import atomic_json
 from .fits import fit_power_law_err
@@ -126,6 +127,8 @@ def sample_values(run) -> dict:
     out["collisions_per_strain"] = float(f.get("collisions_per_strain", nan))
     st = run.ts.get("strain")
     out["strain"] = float(st[-1]) if st is not None and len(st) else nan
+    # the strain at the final phi and whether it jammed before (compressed while flowing)
+    out["rate_strain"], out["jammed_compressing"] = rate_exposure(run)
     out["phi"] = float(f.get("phi", nan))
     out["N"] = int(f.get("N", 0))
     return out
@@ -189,7 +192,9 @@ def per_phi(ens: dict) -> dict:
         v = np.array([x[q] for x in flowing], float)
         m, e, n = mean_sem(v)
         out[q] = dict(mean=float(m), sem=float(e), n=int(n), values=v.tolist())
-    out["jamming_rate"] = jamming_rate([x["status"] for x in s], [x["strain"] for x in s])
+    out["jamming_rate"] = jamming_rate([x["status"] for x in s],
+                                       [x.get("rate_strain", x["strain"]) for x in s],
+                                       [x.get("jammed_compressing", False) for x in s])
     for key in ("omega", "dgamma"):
         out[f"{key}_exp_pooled"] = pooled_exponent([x["points"][key] for x in flowing])
     return out
