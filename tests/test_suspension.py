@@ -241,6 +241,20 @@ def test_compression_while_shearing():
         hd.Suspension(msu.make_suspension(64, 0.78, seed=3), compress_rate=0.1, compress_to=0.7)
 
 
+def test_jam_while_compressing_is_certified():
+    """Discs swollen fast toward phi_J jam on the way (N = 64 at phi = 0.825, seed 1): the
+    certificate holds the swelling in tau.b, records phi and the shear's own share."""
+    st = msu.make_suspension(64, 0.80, seed=1)
+    sim = hd.Suspension(st, compress_rate=0.5, compress_to=0.842)
+    with pytest.raises(hd.ShearJammed, match="while the discs swell") as exc:
+        sim.run(0.2)
+    rec, tau = exc.value.certificate, exc.value.tau
+    assert rec["certified"] and rec["tau_b"] < 0 and rec["strain_budget"] <= hd.JAM_BUDGET
+    assert 0.80 < rec["phi"] == sim.phi < 0.842
+    assert np.all(tau > 0) and rec["support"] == tau.size
+    assert sim.max_overlap <= 1e-9
+
+
 @pytest.mark.parametrize("kw, msg", [
     (dict(phi=0.843), "jamming"), (dict(phi=0.9), "jamming"), (dict(phi=-0.1), "phi"),
     (dict(phi=0.8, ratio=0.0), "ratio"), (dict(phi=0.8, ratio=-1.4), "ratio"),

@@ -365,6 +365,10 @@ class Suspension:
         cert = compressed_self_stress(S, b, c.gap, dg, v_adm)
         cert.rec = dict(cert.record(), gamma=float(st.gamma), direction=int(direction),
                         dg_min=float(self.dg_min), n_candidates=len(c))
+        if self.compressing:
+            # tau.b above holds the swelling; the shear's own share says whether the flow
+            # alone compresses the self-stress (shear jamming) or only the swelling does
+            cert.rec.update(phi=self.phi, tau_b_shear=float(cert.tau @ (direction * c.b)))
         return cert
 
     def _larger_steps(self, tried: list, cert, cap: float | None) -> list:
@@ -395,8 +399,13 @@ class Suspension:
         else:                       # proved at a larger step (_jam_or_fail)
             what = (f"no step beyond the strain budget {cert.strain_budget:.3g} without "
                     f"overlap (the steps below it failed in the solver)")
+        kind = "shear-jammed"
+        if "tau_b_shear" in rec:
+            kind = "shear-jammed" if rec["tau_b_shear"] < 0 else "jammed by the compression"
+            what += (f" while the discs swell (phi = {rec['phi']:.6g}; the shear's share of "
+                     f"tau.b: {rec['tau_b_shear']:.4g})")
         raise ShearJammed(
-            f"suspension: shear-jammed at gamma = {self.state.gamma:.10g}: {what}, proved "
+            f"suspension: {kind} at gamma = {self.state.gamma:.10g}: {what}, proved "
             f"by a compressed self-stress on "
             f"{cert.support} contacts (tau.b = {cert.tau_b:.4g}, tau.q = {cert.tau_q:.4g} at "
             f"dg = {cert.dg:.3g}, strain budget {cert.strain_budget:.3g}); stress is infinite "
