@@ -537,6 +537,42 @@ path = "{path}"
     comm.Barrier()
 
 
+def test_suspension_compressed_while_flowing_plots_phi(mpi_tmp_path, comm, tmp_path):
+    """A suspension compressed while it flows (N = 64, 0.78 -> 0.79): the stress-strain figure
+    draws phi beside sigma, the fig6a title says phi -> compress_to, the fits take the
+    window's phi."""
+    from petsc4py import PETSc
+
+    from parflow.run import Run, setup_logging
+    from parflow.scene import load_scene
+    path = str(mpi_tmp_path / "compressing.h5")
+    scene = load_scene(f"""
+seed = 3
+[model]
+name = "suspension"
+N = 64
+phi = 0.78
+compress_rate = 0.5
+compress_to = 0.79
+[[protocol.leg]]
+direction = "forward"
+strain = 0.04
+[output]
+path = "{path}"
+""")
+    setup_logging(PETSc.COMM_WORLD, quiet=True)
+    assert Run(scene, PETSc.COMM_WORLD, path, quiet=True).execute() == "complete"
+    comm.Barrier()
+    res = plot.make_plots(path, str(tmp_path / "figs"), only=["stress_strain", "fig6a_sigma"])
+    assert not res.failed, res.failed
+    assert len(res.written) == 2 and all(_is_png(p) for p in res.written)
+    fig = plot_common.fig_stress_strain(plot_base.load_run(path), {})
+    assert any(ax.get_ylabel().startswith("φ") for ax in fig.axes)
+    assert res.fits["phi"] == pytest.approx(0.79, abs=1e-12)      # the last half: at 0.79
+    assert res.fits["phi_range"] == (pytest.approx(0.79, abs=1e-12), pytest.approx(0.79, abs=1e-12))
+    comm.Barrier()
+
+
 # ---------------------------------------------------------------------------------------
 # Layers and the registry
 # ---------------------------------------------------------------------------------------

@@ -53,6 +53,10 @@ def fig_stress_strain(run: Run, fits: dict) -> Figure:
         ax.grid(True, alpha=0.3)
         if "leg" in ts:
             ax.legend(fontsize=8)
+    if "phi" in ts:             # a suspension compressed while it flowed: phi on the right
+        tw = axes[0].twinx()
+        tw.plot(ts["strain"], ts["phi"], "-", lw=1.0, color="0.4")
+        tw.set_ylabel("φ (grey)", color="0.4")
     axes[-1].set_xlabel(r"accumulated strain $\sum|d\gamma|$")
     fig.suptitle(title(run, "stress against strain") + f"\nstatus: {run.attrs.get('status', '?')}",
                  fontsize=10)
