@@ -134,6 +134,8 @@ HOSTILE = [
      "the suspension's step count 99 differs from the run's step = 5"),
     ("suspension-contact-keys", "suspension", _array("active_keys", lambda k: k + 64 * 64),
      "/checkpoint/active_keys are not contact keys"),
+    ("suspension-phi-not-a-packing-fraction", "suspension", _set_attr("phi", 1.7),
+     "checkpoint attribute phi = 1.7 is not a packing fraction in (0, 1)"),
 ]
 
 
