@@ -32,6 +32,7 @@ import sys
 import numpy as np
 
 from .ensemble import SAMPLE_FIELD
+from .dynamics.hard_discs import swollen_radii
 from .geometry import MinImage, cell_at, velocity_gradient
 from .io import RunFile, check_output_path
 from .models import suspension as su
@@ -99,8 +100,7 @@ def load_run_state(path: str, which: str = "checkpoint"):
             raise InputError(f"prepare: {path!r} has no checkpoint (use --from initial)")
         ck = run.checkpoint()
         if "phi" in ck:             # a run that compressed while shearing: the swollen radii
-            phi0 = np.pi * np.sum(radii ** 2) / abs(np.linalg.det(h0))
-            radii = radii * np.sqrt(float(ck["phi"]) / phi0)
+            radii = swollen_radii(radii, abs(np.linalg.det(h0)), float(ck["phi"]))
         return ck["s"], h0, float(ck["gamma"]), radii, int(ck["step"])
 
 

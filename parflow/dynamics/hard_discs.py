@@ -68,6 +68,14 @@ UPWARD_TRIES = 4
 JAM_BUDGET = 1e-8
 
 
+def swollen_radii(radii0: np.ndarray, area: float, phi: float) -> np.ndarray:
+    """The radii of discs swollen from ``radii0`` (in a cell of ``area``) to packing fraction
+    ``phi``: R = R0 sqrt(phi / phi0), phi0 = pi sum R0^2 / area -- how a suspension that is
+    compressed while it flows grows its discs (``Suspension``, ``compress_rate``)."""
+    phi0 = float(np.pi * np.sum(radii0 ** 2) / area)
+    return radii0 * math.sqrt(phi / phi0)
+
+
 def min_gap(state: State, skin: float = DEFAULT_SKIN) -> float:
     """Smallest gap |r| - (R_i + R_j) over all pairs within the skin (inf if none)."""
     c = find_candidates(state.s, state.radii, state.h, state.E, skin)
@@ -200,7 +208,7 @@ class Suspension:
     def set_phi(self, phi: float) -> None:
         """Swell (or shrink) the discs to packing fraction ``phi``: R = R0 sqrt(phi / phi0)."""
         self.phi = float(phi)
-        self.state.radii = self.radii0 * math.sqrt(self.phi / self.phi0)
+        self.state.radii = swollen_radii(self.radii0, self.omega, self.phi)
         self.state.meta["phi"] = self.phi
 
     def end_gaps(self, c: Candidates, dg: float) -> np.ndarray:
