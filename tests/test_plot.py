@@ -541,10 +541,8 @@ def test_suspension_compressed_while_flowing_plots_phi(mpi_tmp_path, comm, tmp_p
     """A suspension compressed while it flows (N = 64, 0.78 -> 0.79): the stress-strain figure
     draws phi beside sigma, the fig6a title says phi -> compress_to, the fits take the
     window's phi."""
-    from petsc4py import PETSc
-
-    from parflow.run import Run, setup_logging
     from parflow.scene import load_scene
+    from systems import run_scene
     path = str(mpi_tmp_path / "compressing.h5")
     scene = load_scene(f"""
 seed = 3
@@ -560,8 +558,7 @@ strain = 0.04
 [output]
 path = "{path}"
 """)
-    setup_logging(PETSc.COMM_WORLD, quiet=True)
-    assert Run(scene, PETSc.COMM_WORLD, path, quiet=True).execute() == "complete"
+    assert run_scene(scene) == "complete"
     comm.Barrier()
     res = plot.make_plots(path, str(tmp_path / "figs"), only=["stress_strain", "fig6a_sigma"])
     assert not res.failed, res.failed
