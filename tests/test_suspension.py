@@ -351,6 +351,49 @@ def test_relaxation_fit_exact():
     r = su.relaxation(g, dg, sig, nc)
     assert r["pairs"] == 37 and r["decreasing"] == 1.0
     assert abs(r["slope"] - 2.0) < 1e-9 and abs(r["C"] - C) < 1e-9
+    assert r["step_jumps"] == 0 and len(r["points"][0]) == 37
+
+
+def test_relaxation_leaves_out_step_size_jumps():
+    """A step cut to a tenth changes sigma through its size (h/dgamma), not by relaxation:
+    the pairs on either side of the jump are left out, the rest still give slope 2."""
+    dg = np.full(40, 1e-3)
+    dg[25] = 1e-4                                # a cut step: pairs (24, 25) and (25, 26)
+    g = np.cumsum(dg)
+    C = 7.0
+    sig = 1.0 / (1.0 / 50.0 + (g - dg) / C)
+    sig[25] *= 0.05                              # its sigma dips
+    r = su.relaxation(g, dg, sig, np.zeros(40, int))
+    assert r["pairs"] == 37 and r["step_jumps"] == 2 and r["decreasing"] == 1.0
+    assert abs(r["slope"] - 2.0) < 1e-9 and abs(r["C"] - C) < 1e-9
+    r_all = su.relaxation(g, dg, sig, np.zeros(40, int), max_ratio=20.0)
+    assert r_all["pairs"] == 39 and r_all["decreasing"] < 1.0     # the dip counted: wrong
+
+
+def test_strain_weighted_mean_and_error():
+    """Steps of very different size: the mean is weighted by strain and so is the error
+    (blocks of equal strain), so a stretch of tiny steps at a huge sigma (a jam's last
+    steps) weighs by its strain, not by its count."""
+    rng = np.random.default_rng(3)
+    x = 100.0 + rng.normal(0.0, 5.0, 400)
+    w = np.full(400, 1e-3)
+    x2, w2 = np.concatenate([x, np.full(300, 1e9)]), np.concatenate([w, np.full(300, 1e-15)])
+    m, e = su._mean_err(x2, w2)
+    assert abs(m - np.average(x2, weights=w2)) < 1e-9 * m and abs(m - x.mean()) < 1e-3
+    assert e < 5.0                               # unweighted blocks: ~1e8
+    m1, e1 = su._mean_err(x, w)                  # equal weights: the plain block error
+    blocks = np.array([b.mean() for b in np.array_split(x, 10)])
+    assert abs(m1 - x.mean()) < 1e-9 and abs(e1 - blocks.std(ddof=1) / np.sqrt(10)) < 1e-9
+
+
+def test_strain_window_means():
+    """Means over windows of equal strain, each step weighted by its strain."""
+    dg = np.array([0.1, 0.1, 0.05, 0.05, 0.2, 0.3, 0.2])
+    strain = np.cumsum(dg)
+    y = np.array([1.0, 3.0, 10.0, 20.0, 2.0, 4.0, 6.0])
+    xc, yc = su.strain_window_means(strain, dg, y, 2)          # windows [0, 0.5], [0.5, 1]
+    assert np.allclose(xc, [0.25, 0.75])
+    assert np.allclose(yc, [(0.1 + 0.3 + 0.5 + 1.0 + 0.4) / 0.5, (1.2 + 1.2) / 0.5])
 
 
 def test_bordered_solves_match_fresh_factorisations(dense):

@@ -1,6 +1,7 @@
 """Figures for every model.
 
-* ``stress_strain``     sigma and <V^2> against the accumulated strain, legs coloured.
+* ``stress_strain``     sigma and <V^2> against the accumulated strain, legs coloured (a
+                        suspension's also as means over windows of equal strain).
 * ``step_diagnostics``  dgamma, err, rejected, sigma_mismatch, length_error, residual, ...
                         against the step number.
 * ``omega_min``         omega_min against sigma, log-log, reference slope -1/2.
@@ -14,6 +15,7 @@ from matplotlib.figure import Figure
 
 from ..post.fits import fit_power_law
 from ..post.report import fmt_exp
+from ..post.suspension import strain_window_means
 from .base import QLABEL, Run, Skip, figure, new_figure, reference, title
 
 
@@ -43,15 +45,24 @@ def fig_stress_strain(run: Run, fits: dict) -> Figure:
     fig = new_figure(8.5, 2.9 * len(qs) + 0.6)
     axes = fig.subplots(len(qs), 1, squeeze=False, sharex=True)[:, 0]
     labels = {"sigma": r"$\sigma$", "V2": QLABEL["V2"]}
+    steps_vary = run.model == "suspension" and "dgamma" in ts and len(ts["strain"]) > 40
+    windows = max(10, min(200, len(ts["strain"]) // 20))
+    first = _by_leg(run)[0][0]
     for ax, q in zip(axes, qs):
         for k, m in _by_leg(run):
             x, y = ts["strain"][m], ts[q][m]
             ok = np.isfinite(y) & (y > 0)
             ax.semilogy(x[ok], y[ok], ".-", ms=2, lw=0.8, color=f"C{k % 10}",
                         label=_leg_label(run, k) if "leg" in ts else None)
+            if steps_vary:
+                # a suspension's per-step value depends on the step's size (a step cut
+                # after an infeasible LCP can dip 10-100x): means over equal strain
+                xc, yc = strain_window_means(x, ts["dgamma"][m], y, windows)
+                ax.semilogy(xc, yc, "-", lw=1.4, color="k",
+                            label=f"mean over {x.ptp() / windows:.2g} strain" if k == first else None)
         ax.set_ylabel(labels[q])
         ax.grid(True, alpha=0.3)
-        if "leg" in ts:
+        if "leg" in ts or steps_vary:
             ax.legend(fontsize=8)
     if "phi" in ts:             # a suspension compressed while it flowed: phi on the right
         tw = axes[0].twinx()

@@ -93,22 +93,14 @@ def fig6a_sigma(run: Run, fits: dict):
 def fig6b_relaxation(run: Run, fits: dict):
     """-dsigma/dgamma against sigma: at the analysis instants from the frozen contacts sheared
     along the flow (the suspension's dynamics until the next collision), and from pairs of
-    consecutive collision-free steps of the run when there are any (small N only: at
-    N = 4096 nearly every step has a collision)."""
+    consecutive collision-free steps of equal size (within 2x) when there are any
+    (``post.suspension.relaxation``; small N only: at N = 4096 nearly every step has a
+    collision)."""
     rs, rd = fits.get("relax_frozen_points", (np.array([]), np.array([])))
     ok = np.isfinite(rs) & np.isfinite(rd) & (rs > 0) & (rd > 0)
-    ts = run.ts
-    pairs = None
-    if "n_coll" in ts and "sigma" in ts:
-        m = window_rows(run)
-        idx = np.flatnonzero(m)
-        if idx.size > 2:
-            g0 = ts["gamma"][idx] - ts["dgamma"][idx]
-            s, nc = ts["sigma"][idx], ts["n_coll"][idx]
-            dsdg = np.diff(s) / np.diff(g0)
-            dec = (nc[:-1] == 0) & (nc[1:] == 0) & (dsdg < 0)
-            if dec.sum() >= 3:
-                pairs = (np.sqrt(s[:-1] * s[1:])[dec], -dsdg[dec])
+    pairs = fits.get("relaxation", {}).get("points")
+    if pairs is not None and len(pairs[0]) < 3:
+        pairs = None
     if ok.sum() < 2 and pairs is None:
         raise Skip("no relaxation rate at the analysis instants and no collision-free step pairs")
     fig = new_figure(6.5, 5)

@@ -113,7 +113,8 @@ def format_suspension_fits(f: dict) -> list[str]:
              f"  relaxation (frozen contacts, instants): -dsigma/dgamma ~ sigma^"
              f"{f['relax_frozen']['exponent']:.3f} +- {f['relax_frozen']['err']:.3f} (pred. 2), "
              f"median C = {f['relax_frozen']['C_median']:.4g}; collision-free step pairs: "
-             f"{rel.get('pairs', 0)} (slope {rel.get('slope', math.nan):.3f})",
+             f"{rel.get('pairs', 0)} (slope {rel.get('slope', math.nan):.3f}; "
+             f"{rel.get('step_jumps', 0)} more across a step-size jump, left out)",
              f"  delta_gamma ~ sigma^{f['delta_gamma']['exponent']:.3f} +- {f['delta_gamma']['err']:.3f} (pred. -1)",
              f"  omega_min ~ sigma^{f['omega_min']['exponent']:.3f} +- {f['omega_min']['err']:.3f} (pred. -0.5)",
              f"  l_c (point response) = {f['resp_l_c'][0]:.3g}, C(r) 1/e length = {f['corr_length'][0]:.3g}"]
