@@ -59,7 +59,7 @@ def fig_stress_strain(run: Run, fits: dict) -> Figure:
                 # after an infeasible LCP can dip 10-100x): means over equal strain
                 xc, yc = strain_window_means(x, ts["dgamma"][m], y, windows)
                 ax.semilogy(xc, yc, "-", lw=1.4, color="k",
-                            label=f"mean over {x.ptp() / windows:.2g} strain" if k == first else None)
+                            label=f"mean over {np.ptp(x) / windows:.2g} strain" if k == first else None)
         ax.set_ylabel(labels[q])
         ax.grid(True, alpha=0.3)
         if "leg" in ts or steps_vary:

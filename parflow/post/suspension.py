@@ -124,7 +124,8 @@ def relaxation(gamma: np.ndarray, dgamma: np.ndarray, sigma: np.ndarray,
     depends on its size (the gaps that the previous step left open weigh h/dgamma in its
     LCP), so the step cut to a tenth after an infeasible LCP changes sigma without any
     relaxation -- and near jamming such cut steps are most of the collision-free ones (at
-    phi = 0.84, N = 4096: 227 of 245 pairs straddle a jump of more than 2x).  Returns the
+    phi = 0.84, N = 4096: 229 of 247 pairs in the last half of one run straddle a jump
+    of more than 2x).  Returns the
     number of pairs used, of pairs left out for a step-size jump (``step_jumps``), the
     fraction with decreasing sigma, the slope of log(-dsigma/dgamma) against log sigma over
     the decreasing ones (2 expected), C = median sigma^2/(-dsigma/dgamma) and those
