@@ -47,9 +47,9 @@ def fig_stress_strain(run: Run, fits: dict) -> Figure:
     labels = {"sigma": r"$\sigma$", "V2": QLABEL["V2"]}
     steps_vary = run.model == "suspension" and "dgamma" in ts and len(ts["strain"]) > 40
     windows = max(10, min(200, len(ts["strain"]) // 20))
-    first = _by_leg(run)[0][0]
+    legs = _by_leg(run)
     for ax, q in zip(axes, qs):
-        for k, m in _by_leg(run):
+        for k, m in legs:
             x, y = ts["strain"][m], ts[q][m]
             ok = np.isfinite(y) & (y > 0)
             ax.semilogy(x[ok], y[ok], ".-", ms=2, lw=0.8, color=f"C{k % 10}",
@@ -59,7 +59,7 @@ def fig_stress_strain(run: Run, fits: dict) -> Figure:
                 # after an infeasible LCP can dip 10-100x): means over equal strain
                 xc, yc = strain_window_means(x, ts["dgamma"][m], y, windows)
                 ax.semilogy(xc, yc, "-", lw=1.4, color="k",
-                            label=f"mean over {np.ptp(x) / windows:.2g} strain" if k == first else None)
+                            label=f"mean over {np.ptp(x) / windows:.2g} strain" if k == legs[0][0] else None)
         ax.set_ylabel(labels[q])
         ax.grid(True, alpha=0.3)
         if "leg" in ts or steps_vary:

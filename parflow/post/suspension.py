@@ -53,8 +53,8 @@ def _mean_err(x: np.ndarray, w: np.ndarray | None = None,
     equal strain, each block's own weighted mean: the per-step value of a suspension is the
     dissipation of its step, whose size varies 100-fold near jamming (steps cut after an
     infeasible LCP, a few long ones between), so blocks of equal step count would weigh the
-    stretches of tiny steps around a stress peak like the rest.  A step is put in the block
-    of its midpoint strain."""
+    stretches of tiny steps around a stress peak like the rest (:func:`strain_window_means`
+    over the window's own strain)."""
     x = np.asarray(x, float)
     ok = np.isfinite(x)
     if w is not None:
@@ -71,13 +71,9 @@ def _mean_err(x: np.ndarray, w: np.ndarray | None = None,
         return mean, math.nan
     if x.size < 2 * blocks:
         return mean, float(x.std() / math.sqrt(max(x.size - 1, 1)))
-    edge = np.cumsum(w)
-    mid = (edge - 0.5 * w) / edge[-1]
-    k = np.minimum((mid * blocks).astype(np.int64), blocks - 1)
-    ws = np.bincount(k, weights=w, minlength=blocks)
-    if np.any(ws == 0):                  # one step longer than a block: too few to block
+    _, b = strain_window_means(np.cumsum(w), w, x, blocks)
+    if b.size < blocks:                  # one step longer than a block: too few to block
         return mean, float(x.std() / math.sqrt(max(x.size - 1, 1)))
-    b = np.bincount(k, weights=w * x, minlength=blocks) / ws
     return mean, float(b.std(ddof=1) / math.sqrt(blocks))
 
 
