@@ -183,6 +183,45 @@ def test_singular_active_set_is_handled():
     check_lcp(S, q, f, tol=1e-7)
 
 
+def test_redundant_contact_dropped_on_mixed_sign_null_vector():
+    """Three contacts duplicated: N_AA has three null vectors e_a - e_a', of mixed sign and
+    not loaded (q_a = q_a').  Each is dropped explicitly: one contact of each pair ends with
+    zero force (the min-norm solution splits the force between the two), the other carries
+    it all, V = S^T f is the same as with every pair split, and the LCP holds.  Loaded null
+    vectors (q_a != q_a') and a compressed self-stress (the recorded near-jammed LCP,
+    all-positive and loaded) are left to the pivoting."""
+    import scipy.sparse as sp
+    st = msu.make_suspension(32, 0.7, seed=2)
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.05)
+    S1 = rigidity_csr(c.n, c.i, c.j, st.n).toarray()
+    m = S1.shape[0]
+    S = sp.csr_matrix(np.vstack([S1, S1[:3]]))
+    q = -np.abs(S @ np.random.default_rng(1).standard_normal(S.shape[1])) - 0.1
+    f, info = co.solve_lcp(S, q, warm=np.ones(S.shape[0], bool))
+    check_lcp(S, q, f, tol=1e-7)
+    assert info.dropped >= 3
+    pairs = np.array([(f[k], f[m + k]) for k in range(3)])
+    assert np.all(pairs.min(axis=1) == 0.0) and np.all(pairs.max(axis=1) > 0.1)
+    # against the same LCP without the duplicates: the force of a pair is the one contact's
+    f1, _ = co.solve_lcp(sp.csr_matrix(S1), q[:m])
+    np.testing.assert_allclose(pairs.sum(axis=1), f1[:3], rtol=1e-9)
+    np.testing.assert_allclose(S.T @ f, S1.T @ f1, rtol=0, atol=1e-9 * np.abs(S1.T @ f1).max())
+    # loaded (the duplicate's q larger by 0.05: u . q != 0): nothing to drop explicitly; the
+    # pivoting opens the duplicate (f = 0, w = 0.05) and the first carries the force
+    q2 = q.copy()
+    q2[m:] = q[:3] + 0.05
+    f, info = co.solve_lcp(S, q2, warm=np.ones(S.shape[0], bool))
+    check_lcp(S, q2, f, tol=1e-7)
+    assert info.singular >= 1 and info.dropped == 0
+    np.testing.assert_allclose(f[m:], 0.0, atol=0)
+    np.testing.assert_allclose(f[:3], f1[:3], rtol=1e-9)
+
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "near_singular_lcp.npz"))
+    Sr = sp.csr_matrix((d["data"], d["indices"], d["indptr"]), shape=tuple(d["shape"]))
+    f, info = co.solve_lcp(Sr, d["b"] + d["gap"] / 5.52e-9, d["warm"])
+    assert info.singular >= 1 and info.dropped == 0
+
+
 def test_steps_no_overlap_and_sigma_identity(dense):
     st = dense.copy()
     sim = hd.Suspension(st)

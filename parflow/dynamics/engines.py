@@ -316,12 +316,13 @@ class ContactEngine:
             # gap_work holds on this row too); dgamma = 0: no strain has been applied yet
             return dict(dgamma=0.0, n_candidates=len(self.F.c), n_active=int(np.count_nonzero(self.F.f > 0)),
                         n_new=0, n_coll=0, overlap=0.0, lcp_iterations=0, factorizations=0,
-                        singular=0, min_w=0.0, gap_work=self.F.gap_work,
+                        singular=0, dropped=0, min_w=0.0, gap_work=self.F.gap_work,
                         t_search=0.0, t_lcp=0.0, t_update=0.0)
         return dict(dgamma=self._direction * st.dgamma, n_candidates=st.n_candidates,
                     n_active=st.n_active, n_new=st.n_new, n_coll=st.n_coll, overlap=st.overlap,
                     lcp_iterations=st.lcp.iterations, factorizations=st.lcp.factorizations,
-                    singular=st.lcp.singular, min_w=st.lcp.min_w, gap_work=st.gap_work,
+                    singular=st.lcp.singular, dropped=st.lcp.dropped, min_w=st.lcp.min_w,
+                    gap_work=st.gap_work,
                     t_search=st.times["search"], t_lcp=st.times["lcp"], t_update=st.times["update"])
 
     # analyses ----------------------------------------------------------------------

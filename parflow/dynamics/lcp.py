@@ -39,6 +39,7 @@ class LCPInfo:
     min_w: float = 0.0         # min over candidates of w (>= -tol)
     floor: float = 0.0         # round-off floor of w at the solution, eps ||N||_inf max f
     refined: int = 0           # refinement steps of shifted solves against the true N_AA
+    dropped: int = 0           # redundant contacts dropped along a mixed-sign null vector
     comp: float = 0.0          # max |f_a w_a|
     factor_time: float = 0.0
     bordered: int = 0          # solves by a bordered update of a kept factor (no factorisation)
@@ -71,6 +72,14 @@ NEWTON_SINGULAR = 6
 # 60 at 5 % leave -1.2e-5, within the round-off tolerance (tests/test_suspension.py)
 REFINE_RATE = 0.95
 REFINE_STEPS = 60               # iterative refinement of a shifted solve against N_AA
+# a null vector u of a singular N_AA (inverse iteration on the shifted factor) is taken as
+# one if ||N_AA u|| <= NULL_TOL ||N_AA||_inf |u|; its support: entries above SUPPORT max|u|;
+# the right-hand side does not load it if |u . rhs| <= UNLOADED |rhs| (measured at phi =
+# 0.84, N = 4096: unloaded clusters at 1e-14 - 2e-11, loaded ones at 1e-7 - 1e-2; ActiveSolver.
+# _drop_redundant)
+NULL_TOL = 1e-10
+SUPPORT = 1e-3
+UNLOADED = 1e-9
 
 
 def roundoff_floor(N, f: np.ndarray) -> float:
@@ -170,12 +179,72 @@ class ActiveSolver:
             fac, y = self._factorise(Ms, rhs)
         if y is not None:
             y = self._refine(M, fac, rhs, y)
+            y = self._drop_redundant(M, fac, rhs, y, norm)
         fac.destroy()
         info.factor_time += time.perf_counter() - t0
         if y is None:
             raise LCPFailure(f"contact LCP: the shifted active N ({idx.size} contacts) "
                              f"could not be factored")
         x[idx] = y
+        return x
+
+    def _drop_redundant(self, M, fac, rhs: np.ndarray, y: np.ndarray, norm: float) -> np.ndarray:
+        """A singular N_AA whose null vector u (a self-stress of the active contacts) the
+        right-hand side does not load (|u . rhs| <= UNLOADED |rhs|: the flow does not press
+        on that over-constrained cluster) has the exact solutions y_r + t u, y_r = y - (u.y) u
+        (the shifted, refined solve's part on the range of N_AA).  Of them take the one where
+        the first contact of u's support reaches zero force as t moves away from y_r (the
+        direction leaving fewer negative forces; a ratio test keeps the others of the support
+        >= 0): that contact is redundant, with f = 0 and w = 0, so the pivoting drops it
+        (projected Newton, Lawson-Hanson), and the next set -- and the next step's warm set,
+        which near jamming met the same singular cluster step after step -- is no longer
+        singular along u.  Without this the refined minimum-norm solution shares the force
+        among the cluster's contacts and the set stays singular.  A loaded u is left to the
+        pivoting: the shifted solve puts ~ (u . rhs)/shift along it, the contacts of one sign
+        leave the set, and a compressed self-stress (u >= 0 loaded in compression) goes on to
+        the certificate (a jam); so is a u that is not a null vector to NULL_TOL (several
+        null vectors are met one per singular solve).  u: two steps of inverse iteration with
+        the shifted factor (it amplifies the null space by ~ 1/shift).  Kept only if its
+        residual is within the round-off of the new forces or as small as y's; else y."""
+        n = y.size
+        if n < 2:
+            return y
+        # a fixed start vector (the same on every rank and every run): not orthogonal to u
+        u = np.cos(np.arange(1, n + 1) * 0.7548776662466927) + 1.5
+        for _ in range(2):
+            u = fac.solve(u)
+            if u is None:
+                return y
+            nu = float(np.linalg.norm(u))
+            if not (np.isfinite(nu) and nu > 0):
+                return y
+            u /= nu
+        if not float(np.linalg.norm(M @ u)) <= NULL_TOL * norm:
+            return y                                          # not singular along one vector
+        if not abs(float(u @ rhs)) <= UNLOADED * float(np.linalg.norm(rhs)):
+            return y                                          # loaded: the pivoting's
+        y_r = y - float(u @ y) * u
+        big = SUPPORT * float(np.abs(u).max())
+        best = None
+        for v in (u, -u):
+            cand = np.flatnonzero((v > big) & (y_r > 0))      # x = y_r - t v, t >= 0
+            if cand.size == 0:
+                continue
+            ratio = y_r[cand] / v[cand]
+            j = int(np.argmin(ratio))
+            x = y_r - float(ratio[j]) * v
+            x[cand[j]] = 0.0
+            neg = int(np.count_nonzero(x < 0))
+            if best is None or neg < best[0]:
+                best = (neg, x)
+        if best is None:
+            return y
+        x = best[1]
+        res = float(np.linalg.norm(M @ x - rhs))
+        floor = FLOOR_FACTOR * EPS * norm * float(np.abs(x).max()) * np.sqrt(n)
+        if not res <= max(floor, float(np.linalg.norm(M @ y - rhs))):
+            return y
+        self.info.dropped += 1
         return x
 
     def _refine(self, M, fac, rhs: np.ndarray, y: np.ndarray) -> np.ndarray:
