@@ -222,6 +222,27 @@ def test_redundant_contact_dropped_on_mixed_sign_null_vector():
     assert info.singular >= 1 and info.dropped == 0
 
 
+def test_first_tries_give_up_sooner(dense):
+    """``fallback=False`` (a step's first tries): a solvable LCP gives the same f as with every
+    phase; the recorded infeasible one (a compressed self-stress at dg = 1e-8) gives up when
+    projected Newton does not end, instead of cycling through Lawson-Hanson."""
+    import scipy.sparse as sp
+    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
+    S = rigidity_csr(c.n, c.i, c.j, dense.n)
+    q = c.b + c.gap / 1e-3
+    f0, _ = co.solve_lcp(S, q)
+    f1, info = co.solve_lcp(S, q, fallback=False)
+    assert info.mode in ("bpp", "newton")
+    np.testing.assert_allclose(S.T @ f1, S.T @ f0, rtol=0, atol=1e-9 * np.abs(S.T @ f0).max())
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "near_singular_lcp.npz"))
+    Sr = sp.csr_matrix((d["data"], d["indices"], d["indptr"]), shape=tuple(d["shape"]))
+    qr = d["b"] + d["gap"] / 1e-8
+    with pytest.raises(co.LCPFailure, match="given up after 40 solves"):
+        co.solve_lcp(Sr, qr, d["warm"])
+    with pytest.raises(co.LCPFailure, match="projected Newton did not end"):
+        co.solve_lcp(Sr, qr, d["warm"], fallback=False)
+
+
 def test_steps_no_overlap_and_sigma_identity(dense):
     st = dense.copy()
     sim = hd.Suspension(st)
