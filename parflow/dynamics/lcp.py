@@ -39,7 +39,7 @@ class LCPInfo:
     min_w: float = 0.0         # min over candidates of w (>= -tol)
     floor: float = 0.0         # round-off floor of w at the solution, eps ||N||_inf max f
     refined: int = 0           # refinement steps of shifted solves against the true N_AA
-    dropped: int = 0           # redundant contacts dropped along a mixed-sign null vector
+    dropped: int = 0           # redundant contacts dropped along an unloaded null vector
     comp: float = 0.0          # max |f_a w_a|
     factor_time: float = 0.0
     bordered: int = 0          # solves by a bordered update of a kept factor (no factorisation)
@@ -196,10 +196,9 @@ class ActiveSolver:
         the first contact of u's support reaches zero force as t moves away from y_r (the
         direction leaving fewer negative forces; a ratio test keeps the others of the support
         >= 0): that contact is redundant, with f = 0 and w = 0, so the pivoting drops it
-        (projected Newton, Lawson-Hanson), and the next set -- and the next step's warm set,
-        which near jamming met the same singular cluster step after step -- is no longer
-        singular along u.  Without this the refined minimum-norm solution shares the force
-        among the cluster's contacts and the set stays singular.  A loaded u is left to the
+        (projected Newton, Lawson-Hanson), and the next set -- and the next step's warm set
+        -- is no longer singular along u.  Without this the refined minimum-norm solution
+        shares the force among the cluster's contacts and the set stays singular.  A loaded u is left to the
         pivoting: the shifted solve puts ~ (u . rhs)/shift along it, the contacts of one sign
         leave the set, and a compressed self-stress (u >= 0 loaded in compression) goes on to
         the certificate (a jam); so is a u that is not a null vector to NULL_TOL (several
