@@ -222,25 +222,27 @@ def test_redundant_contact_dropped_on_mixed_sign_null_vector():
     assert info.singular >= 1 and info.dropped == 0
 
 
-def test_first_tries_give_up_sooner(dense):
-    """``fallback=False`` (a step's first tries): a solvable LCP gives the same f as with every
-    phase; the recorded infeasible one (a compressed self-stress at dg = 1e-8) gives up when
-    projected Newton does not end, instead of cycling through Lawson-Hanson."""
-    import scipy.sparse as sp
-    c = geometry.find_candidates(dense.s, dense.radii, dense.h, dense.E, 0.3)
-    S = rigidity_csr(c.n, c.i, c.j, dense.n)
-    q = c.b + c.gap / 1e-3
-    f0, _ = co.solve_lcp(S, q)
-    f1, info = co.solve_lcp(S, q, fallback=False)
-    assert info.mode in ("bpp", "newton")
-    np.testing.assert_allclose(S.T @ f1, S.T @ f0, rtol=0, atol=1e-9 * np.abs(S.T @ f0).max())
-    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "near_singular_lcp.npz"))
-    Sr = sp.csr_matrix((d["data"], d["indices"], d["indptr"]), shape=tuple(d["shape"]))
-    qr = d["b"] + d["gap"] / 1e-8
-    with pytest.raises(co.LCPFailure, match="given up after 40 solves"):
-        co.solve_lcp(Sr, qr, d["warm"])
-    with pytest.raises(co.LCPFailure, match="projected Newton did not end"):
-        co.solve_lcp(Sr, qr, d["warm"], fallback=False)
+def test_first_tries_get_the_smaller_lcp_budget(dense, monkeypatch):
+    """A step's first two tries solve their LCP with LCP_SOLVES_FIRST solves at most, the
+    third (the step cut twice) with LCP_SOLVES; each failure cuts the step by RETRY_FACTOR,
+    and the step that succeeds is the one taken."""
+    import copy
+    sim = hd.Suspension(copy.deepcopy(dense))
+    sim.step()
+    calls = []
+    real = hd.solve_lcp
+
+    def flaky(S, q, warm=None, **kw):
+        calls.append(kw["max_solves"])
+        if len(calls) <= 2:
+            raise co.LCPFailure("made to fail")
+        return real(S, q, warm, **kw)
+    monkeypatch.setattr(hd, "solve_lcp", flaky)
+    dg0 = sim.next_dgamma()
+    st = sim.step()
+    assert calls == [hd.LCP_SOLVES_FIRST, hd.LCP_SOLVES_FIRST, hd.LCP_SOLVES]
+    assert hd.LCP_SOLVES_FIRST < hd.LCP_SOLVES
+    assert st.dgamma == pytest.approx(dg0 * hd.RETRY_FACTOR ** 2, rel=1e-12)
 
 
 def test_steps_no_overlap_and_sigma_identity(dense):

@@ -61,14 +61,14 @@ MAX_GROWTH = 4.0
 UPWARD_FACTOR = 4.0
 # an infeasible LCP retries the step at RETRY_FACTOR x its size
 RETRY_FACTOR = 0.1
-# The first two tries of a step get a budget of LCP_SOLVES_FIRST solves and no Lawson-
-# Hanson phase after projected Newton (solve_lcp's max_solves and fallback); the later tries
-# (a step cut twice, the upward search) get the full LCP_SOLVES and every phase.  Measured at
-# phi = 0.8407, N = 4096 (659 LCPs of 600 steps): the 25 LCPs that gave up (after 600
-# solves, or 20 singular sets) took 26 % of the LCP time, 2.2-4.6 s each, and in 24 of 25 the
-# retry at dg/10 succeeded in 0.03-0.5 s; of the LCPs that succeeded, 3 in 634 needed more
-# than 150 solves (0.2 % of the steps of three runs at 0.840 needed more than 200), and 625 of
-# 626 ended in projected Newton (docs/suspensions.md "An LCP that cycles")
+# The first two tries of a step get a budget of LCP_SOLVES_FIRST solves (solve_lcp's
+# max_solves); the later tries (a step cut twice, the upward search) get LCP_SOLVES.
+# Measured at phi = 0.8407, N = 4096 (659 LCPs of 600 steps): the 25 LCPs that gave up
+# (after 600 solves, or 20 singular sets) took 26 % of the LCP time, 2.2-4.6 s each, and in
+# 24 of 25 the retry at dg/10 succeeded in 0.03-0.5 s; of the LCPs that succeeded, 3 in 634
+# needed more than 150 solves (0.2 % of the steps of three runs at 0.840 needed more than
+# 200).  Dropping the Lawson-Hanson phase on those tries as well was faster there but not
+# from rest (docs/suspensions.md "An LCP that cycles")
 LCP_SOLVES_FIRST = 150
 LCP_SOLVES = 600
 UPWARD_TRIES = 4
@@ -232,13 +232,12 @@ class Suspension:
     def forces(self, c: Candidates, dg: float, direction: int = 1, first: bool = False):
         """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
         -1 reversed flow: the affine rates change sign, b -> -b).  ``first``: one of the first
-        tries of a step, whose LCP gives up sooner (LCP_SOLVES_FIRST, no Lawson-Hanson)."""
+        tries of a step, whose LCP gives up sooner (after LCP_SOLVES_FIRST solves)."""
         S = rigidity_csr(c.n, c.i, c.j, self.state.n)
         q = direction * c.b + self.end_gaps(c, dg) / dg
         warm = np.isin(self._keys(c), self._active_keys)
         f, info = solve_lcp(S, q, warm, factor=self.factor,
-                            max_solves=LCP_SOLVES_FIRST if first else LCP_SOLVES,
-                            fallback=not first)
+                            max_solves=LCP_SOLVES_FIRST if first else LCP_SOLVES)
         V = (S.T @ f).reshape(self.state.n, self.state.d)
         return S, q, f, V, info, warm
 

@@ -401,8 +401,7 @@ class ActiveSolver:
 def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
               tol: float | None = None, max_iter: int = 200, bpp_max: int = 2,
               bpp_patience: int = 3, factor: str = "cholmod", max_solves: int = 600,
-              max_singular: int = 20, newton_max: int = 150,
-              fallback: bool = True) -> tuple[np.ndarray, LCPInfo]:
+              max_singular: int = 20, newton_max: int = 150) -> tuple[np.ndarray, LCPInfo]:
     """f >= 0, w = S S^T f + q >= -tol, f . w = 0 by a warm-started active set.
 
     Phase 0: block principal pivoting from the warm set, at most ``bpp_max`` solves (0
@@ -416,10 +415,7 @@ def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
     Phase 2 (Lawson-Hanson, mode "block"/"single", if phase 1 did not end): solve on the
     set, drop contacts whose force comes out negative, repeat; add violated constraints
     (w < -tol) -- all at once while that makes progress, one at a time (the most violated)
-    after 50 iterations -- and keep f feasible by the ratio test.  ``fallback = False``
-    gives up instead when phase 1 ran and did not end (the suspension's first tries of a
-    step: measured at phi = 0.84, N = 4096, phase 2 finished 1 of 626 LCPs, and a smaller
-    step is the cheaper cure; docs/suspensions.md).
+    after 50 iterations -- and keep f feasible by the ratio test.
 
     Gives up (:class:`LCPFailure`) after ``max_solves`` solves or ``max_singular`` singular
     active sets: an LCP that has no solution (a state of self-stress that q compresses, for
@@ -438,14 +434,14 @@ def solve_lcp(S: sp.csr_matrix, q: np.ndarray, warm: np.ndarray | None = None,
     act = ActiveSolver(N, q, info, factor)
     try:
         return _pivot(N, q, act, info, warm, tol, max_iter, bpp_max, bpp_patience,
-                      max_solves, max_singular, newton_max, fallback)
+                      max_solves, max_singular, newton_max)
     finally:
         act.release()
 
 
 def _pivot(N, q, act: ActiveSolver, info: LCPInfo, warm, tol: float, max_iter: int,
            bpp_max: int, bpp_patience: int, max_solves: int, max_singular: int,
-           newton_max: int, fallback: bool = True) -> tuple[np.ndarray, LCPInfo]:
+           newton_max: int) -> tuple[np.ndarray, LCPInfo]:
     """The pivoting of :func:`solve_lcp` (every solve through ``act``)."""
     nc = q.shape[0]
 
@@ -499,10 +495,6 @@ def _pivot(N, q, act: ActiveSolver, info: LCPInfo, warm, tol: float, max_iter: i
                                 newton_max)
         if out is not None:
             return out
-        if not fallback:
-            raise LCPFailure(f"contact LCP: projected Newton did not end ({info.newton} "
-                             f"iterations, {info.singular} singular active sets; "
-                             f"{info.iterations} solves)")
     # phase 2 (Lawson-Hanson): drop negative forces from the set, then add violated constraints
     while A.any():
         z = solve(A)
