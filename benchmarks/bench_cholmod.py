@@ -146,12 +146,19 @@ def main():
                   f"refactor {r['refactor_seconds']:.4f} s, solve {1e3 * r['solve_seconds']:.2f} ms, "
                   f"nnz(L) {r['factor_nonzeros']:,}, residual {r['residual']:.1e}", flush=True)
         records.append(dict(network=os.path.basename(p), n=n, nc=M.getSize()[0],
-                            nnz_N=int(M.getInfo()["nz_used"]), rows=rows,
-                            date=time.strftime("%Y-%m-%d %H:%M"), load_end=os.getloadavg()))
+                            nnz_N=int(M.getInfo()["nz_used"]), rows=rows, repeat=args.repeat,
+                            rounds=args.rounds, date=time.strftime("%Y-%m-%d %H:%M"),
+                            load_start=load_start, load_end=os.getloadavg()))
         M.destroy()
-    results.write("cholmod", dict(benchmark="CHOLMOD settings on a network's N", repeat=args.repeat,
-                                  rounds=args.rounds,
-                                  load_start=load_start, records=records))
+    # the records of other networks (an earlier invocation) stay
+    kept = []
+    if os.path.exists(results.path("cholmod")):
+        import json
+        with open(results.path("cholmod")) as fh:
+            done = {r["network"] for r in records}
+            kept = [r for r in json.load(fh).get("records", []) if r["network"] not in done]
+    results.write("cholmod", dict(benchmark="CHOLMOD settings on a network's N",
+                                  records=kept + records))
 
 
 if __name__ == "__main__":

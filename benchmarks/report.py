@@ -676,8 +676,8 @@ def cholmod_section(d):
            "CHOLMOD through PETSc with each variant of CHOLMOD's settings (`mat_cholmod_*` "
            "options): the default (supernodal, AMD ordering), `simplicial`, the best fill of nine "
            "orderings (`nmethods = 9`), and less supernode amalgamation (`nrelax = 1,4,16`, "
-           f"`zrelax = 0.5,0.05,0.01`).  Each number is the smallest of {d.get('rounds', 1)} "
-           "interleaved rounds' medians.", "",
+           "`zrelax = 0.5,0.05,0.01`).  Each number is the smallest of the interleaved rounds' "
+           "medians (rounds and repetitions per network below).", "",
            "| N | Nc | variant | first factorisation (s) | refactorisation (s) | solve (ms) | nnz(L) | solves per refactorisation |",
            "|---|---|---|---|---|---|---|---|"]
     for rec in d["records"]:
@@ -685,11 +685,13 @@ def cholmod_section(d):
             out.append(f"| {rec['n']:,} | {rec['nc']:,} | {r['variant']} | {r['first_seconds']:.3f} | "
                        f"{r['refactor_seconds']:.3f} | {1e3 * r['solve_seconds']:.2f} | "
                        f"{r['factor_nonzeros']:,} | {r['refactor_seconds'] / r['solve_seconds']:.0f} |")
-    dates = sorted({r["date"] for r in d["records"]})
-    load = ", ".join(f"{x:.1f}" for x in d.get("load_start", []))
-    out += ["", f"Measured {', '.join(dates)}; load average at the start {load} (other jobs on "
-            "the cores: the times are indicative, nnz(L) is not affected).", ""]
-    return out
+    out.append("")
+    for rec in d["records"]:
+        load = ", ".join(f"{x:.1f}" for x in rec["load_start"])
+        out.append(f"N = {rec['n']:,}: measured {rec['date']}, {rec['rounds']} round(s) of "
+                   f"{rec['repeat']} refactorisations and {4 * rec['repeat']} solves, load "
+                   f"average at the start {load}.")
+    return out + [""]
 
 
 def main():
