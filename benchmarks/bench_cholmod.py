@@ -13,7 +13,8 @@ variant's own):
   smallsuper   less supernode amalgamation (``nrelax = 1,4,16``, ``zrelax = 0.5,0.05,0.01``)
 
 Per variant: the first factorisation (analysis + numeric), the numeric refactorisation of the
-same pattern (median of refactorisation + solve, less the solve), one solve with one right-hand side (median), nonzeros of the factor.
+same pattern (median of refactorisation + solve, less the solve), one solve with one
+right-hand side (median), nonzeros of the factor.
 A ROS2 or stage-PCG step at N = 40 000 takes ~28 solves per factorisation
 (docs/benchmarks.md, "Integrators on a network"), so the solve weighs as much as the
 factorisation there.
@@ -24,6 +25,7 @@ factorisation there.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -35,6 +37,7 @@ import numpy as np  # noqa: E402
 from petsc4py import PETSc  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from parflow.algebra.solvers import configure_cholesky  # noqa: E402
 from parflow.dynamics.bonded import BondedSystem  # noqa: E402
 from parflow.geometry import velocity_gradient  # noqa: E402
 from parflow.models.network_build import load_network  # noqa: E402
@@ -70,10 +73,8 @@ def measure(M: PETSc.Mat, name: str, opts: dict, repeat: int) -> dict:
     A = M.duplicate(copy=True)
     ksp = PETSc.KSP().create(PETSc.COMM_SELF)
     ksp.setOptionsPrefix(prefix)
-    ksp.setType("preonly")
+    configure_cholesky(ksp, prefix)          # one rank: preonly + Cholesky by CHOLMOD
     pc = ksp.getPC()
-    pc.setType("cholesky")
-    pc.setFactorSolverType("cholmod")
     ksp.setOperators(A)
     ksp.setFromOptions()
     x, b = A.createVecs()
@@ -143,8 +144,9 @@ def main():
                 r[k] = min(x[k] for x in runs[v])
             rows.append(r)
             print(f"N = {n}, Nc = {M.getSize()[0]}: {v:11s} first {r['first_seconds']:.3f} s, "
-                  f"refactor {r['refactor_seconds']:.4f} s, solve {1e3 * r['solve_seconds']:.2f} ms, "
-                  f"nnz(L) {r['factor_nonzeros']:,}, residual {r['residual']:.1e}", flush=True)
+                  f"refactor {r['refactor_seconds']:.4f} s, "
+                  f"solve {1e3 * r['solve_seconds']:.2f} ms, nnz(L) {r['factor_nonzeros']:,}, "
+                  f"residual {r['residual']:.1e}", flush=True)
         records.append(dict(network=os.path.basename(p), n=n, nc=M.getSize()[0],
                             nnz_N=int(M.getInfo()["nz_used"]), rows=rows, repeat=args.repeat,
                             rounds=args.rounds, date=time.strftime("%Y-%m-%d %H:%M"),
@@ -153,7 +155,6 @@ def main():
     # the records of other networks (an earlier invocation) stay
     kept = []
     if os.path.exists(results.path("cholmod")):
-        import json
         with open(results.path("cholmod")) as fh:
             done = {r["network"] for r in records}
             kept = [r for r in json.load(fh).get("records", []) if r["network"] not in done]

@@ -198,13 +198,14 @@ class ActiveSolver:
         >= 0): that contact is redundant, with f = 0 and w = 0, so the pivoting drops it
         (projected Newton, Lawson-Hanson), and the next set -- and the next step's warm set
         -- is no longer singular along u.  Without this the refined minimum-norm solution
-        shares the force among the cluster's contacts and the set stays singular.  A loaded u is left to the
-        pivoting: the shifted solve puts ~ (u . rhs)/shift along it, the contacts of one sign
-        leave the set, and a compressed self-stress (u >= 0 loaded in compression) goes on to
-        the certificate (a jam); so is a u that is not a null vector to NULL_TOL (several
-        null vectors are met one per singular solve).  u: two steps of inverse iteration with
-        the shifted factor (it amplifies the null space by ~ 1/shift).  Kept only if its
-        residual is within the round-off of the new forces or as small as y's; else y."""
+        shares the force among the cluster's contacts and the set stays singular.  A loaded u
+        is left to the pivoting: the shifted solve puts ~ (u . rhs)/shift along it, the
+        contacts of one sign leave the set, and a compressed self-stress (u >= 0 loaded in
+        compression) goes on to the certificate (a jam); so is a u that is not a null vector
+        to NULL_TOL (several null vectors are met one per singular solve).  u: two steps of
+        inverse iteration with the shifted factor (it amplifies the null space by ~ 1/shift).
+        Kept only if its residual is within the round-off of the new forces or as small as
+        y's; else y."""
         n = y.size
         if n < 2:
             return y
