@@ -49,7 +49,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ranks-per-sample", type=int, metavar="r", help="ranks of each sample's "
                    "group (overrides ensemble.ranks_per_sample; default 1)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the figures at the end")
-    p.add_argument("--print-scene", action="store_true", help="print the default scene and exit")
+    p.add_argument("--print-scene", action="store_true", help="print the embedded default scene and exit (nothing else with it)")
     return p
 
 
@@ -58,6 +58,15 @@ def main(argv: list[str] | None = None) -> int:
     app, petsc_args = split_petsc_args(argv, USAGE_FLAGS)
     args = parser().parse_args(app)
     if args.print_scene:
+        others = [f for f, v in (("a scene file", args.scene), ("--restart", args.restart),
+                                 ("--set", args.set), ("--output", args.output)) if v]
+        if others or petsc_args:
+            # one line, exit 2, as for every usage error (and no PETSc/MPI start-up for it)
+            print(f"parflow.shear: error: --print-scene prints the embedded default scene and "
+                  f"takes nothing else (given: {', '.join(others or ['PETSc options'])}); a scene "
+                  f"file is its own text, and a run file keeps its scene in its attribute 'scene'",
+                  file=sys.stderr)
+            return 2
         # (here, not at the top: see the module docstring)
         from .scene import DEFAULT_SCENE
         print(DEFAULT_SCENE, end="")

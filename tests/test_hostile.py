@@ -241,6 +241,12 @@ def test_model_without_name_and_the_defaults_that_must_keep_working(tmp_path):
     assert load_scene(DEFAULT_SCENE)["model"]["N"] == 10000      # the embedded scene
     printed = cli("shear", "--print-scene")
     assert printed.returncode == 0 and load_scene(printed.stdout)["model"]["name"] == "chain"
+    # with a scene file it would print the default scene, not the file's: refused, one line
+    scene = write(tmp_path / "s2.toml", GOOD)
+    for extra in ([scene], ["--set", "model.N=20"], ["-tau_ksp_type", "cg"]):
+        res = cli("shear", "--print-scene", *extra)
+        assert res.returncode == 2 and res.stdout == ""
+        assert len(res.stderr.strip().splitlines()) == 1 and "--print-scene" in res.stderr
 
 
 # ------------------------------------------------------------------ the other entry points
