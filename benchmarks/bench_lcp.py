@@ -14,6 +14,9 @@ solves, factorisations, and the largest difference of V = S^T f from the recorde
     python benchmarks/bench_lcp.py --factors RUN --steps 40 [--repeat 3]
         # the factorisation of N_AA: CHOLMOD auto / simplicial / supernodal, SuperLU
         # (interleaved, --repeat passes each); writes docs/benchmarks/lcp_factors.json
+    python benchmarks/bench_lcp.py --budget RUN --steps 600
+        # the first tries' LCP budget (150 solves) against 600 on every try, stepping on
+        # from RUN's checkpoint; writes docs/benchmarks/lcp_budget.json
 """
 from __future__ import annotations
 
@@ -32,11 +35,10 @@ sys.path.insert(0, ROOT)
 DEFAULT_RUN = os.path.join(ROOT, "out", "bench_lcp_phi0.840.h5")
 
 
-def record(path: str, steps: int) -> tuple[list, dict]:
-    """The LCPs (S, q, warm, f) solved by ``steps`` steps from the checkpoint of ``path``."""
+def _stepper(path: str):
+    """The suspension stepper (and its state) restored from the checkpoint of ``path``."""
     from petsc4py import PETSc
 
-    import parflow.dynamics.hard_discs as su
     from parflow.dynamics.engines import make_engine
     from parflow.io import read_run
     from parflow.run import Run
@@ -46,8 +48,14 @@ def record(path: str, steps: int) -> tuple[list, dict]:
         scene = load_scene(f.attrs["scene"])
     run = Run(scene, PETSc.COMM_SELF, path, restart=True, quiet=True)
     state, ck = run.load_checkpoint()
-    eng = make_engine(PETSc.COMM_SELF, state, scene, run.model, ck)
-    sim = eng.sim
+    return make_engine(PETSc.COMM_SELF, state, scene, run.model, ck).sim, state
+
+
+def record(path: str, steps: int) -> tuple[list, dict]:
+    """The LCPs (S, q, warm, f) solved by ``steps`` steps from the checkpoint of ``path``."""
+    import parflow.dynamics.hard_discs as su
+
+    sim, state = _stepper(path)
     out = []
     solve = su.solve_lcp
 
@@ -178,6 +186,61 @@ def factors(run: str, steps: int, repeat: int) -> int:
     return 0
 
 
+def budget(run: str, steps: int) -> int:
+    """The first tries' LCP budget (hard_discs.LCP_SOLVES_FIRST): the same ``steps`` steps
+    from the checkpoint of ``run``, stepped once with LCP_SOLVES solves on every try (the code
+    before 2026-12-05) and once with the default, one process, every LCP timed.  The
+    trajectories are the same until an LCP needs more solves than the smaller budget, and
+    part after that (the step is chaotic in its round-off): compare strain per hour."""
+    import parflow.dynamics.hard_discs as su
+    from parflow.dynamics.lcp import LCPFailure
+
+    if not os.path.exists(run):
+        print(f"bench_lcp: no such run file {run!r}", file=sys.stderr)
+        return 2
+    rows, meta = [], None
+    first0 = su.LCP_SOLVES_FIRST
+    for name, first in (("600 solves on every try", su.LCP_SOLVES), ("default", first0)):
+        sim, state = _stepper(run)
+        solve, times = su.solve_lcp, []
+
+        def timed(S, q, warm=None, **kw):
+            t0 = time.perf_counter()
+            try:
+                out = solve(S, q, warm, **kw)
+            except LCPFailure:
+                times.append((time.perf_counter() - t0, False))
+                raise
+            times.append((time.perf_counter() - t0, True))
+            return out
+
+        su.solve_lcp, su.LCP_SOLVES_FIRST = timed, first
+        g0, r0, t0 = sim.state.gamma, sim.infeasible_reductions, time.perf_counter()
+        try:
+            for _ in range(steps):
+                sim.step(1)
+        finally:
+            su.solve_lcp, su.LCP_SOLVES_FIRST = solve, first0
+        wall = time.perf_counter() - t0
+        lcp_s = sum(t for t, _ in times)
+        fail_s = sum(t for t, ok in times if not ok)
+        strain = sim.state.gamma - g0
+        rows.append(dict(variant=name, lcp_solves_first=first, lcp_solves=su.LCP_SOLVES,
+                         lcps=len(times), gave_up=sum(1 for _, ok in times if not ok),
+                         gave_up_s=round(fail_s, 2), lcp_s=round(lcp_s, 2), wall_s=round(wall, 2),
+                         strain=strain, retries=sim.infeasible_reductions - r0,
+                         strain_per_hour_lcp=3600 * strain / lcp_s,
+                         strain_per_hour=3600 * strain / wall, sigma_end=float(sim.sigma)))
+        print(rows[-1])
+        if meta is None:
+            meta = dict(file=os.path.relpath(run, ROOT), N=int(state.n), gamma_from=float(g0),
+                        phi=float(sim.phi), steps=steps)
+    data = dict(meta, rows=rows, measured=time.strftime("%Y-%m-%d %H:%M:%S"),
+                loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp_budget", data))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", nargs="?", default=DEFAULT_RUN,
@@ -194,7 +257,16 @@ def main(argv=None) -> int:
                     help="compare the factorisations of N_AA (FACTORS) on the LCPs of --steps "
                          "steps from RUN; writes docs/benchmarks/lcp_factors.json")
     ap.add_argument("--repeat", type=int, default=3, help="passes of each factorisation (--factors)")
+    ap.add_argument("--budget", metavar="RUN",
+                    help="the first tries' LCP budget: --steps steps from RUN's checkpoint with "
+                         "600 solves on every try and with the default; writes "
+                         "docs/benchmarks/lcp_budget.json")
     a = ap.parse_args(argv)
+    if a.steps < 1:
+        print("bench_lcp: --steps must be a positive integer", file=sys.stderr)
+        return 2
+    if a.budget:
+        return budget(a.budget, a.steps)
     if a.factors:
         return factors(a.factors, a.steps, a.repeat)
     if a.strategies:

@@ -258,6 +258,26 @@ def lcp_factors_section(d):
     return out
 
 
+def lcp_budget_section(d):
+    out = ["## Contact LCP: the first tries' budget (`bench_lcp.py --budget`)", "",
+           f"{d['steps']} suspension steps from the checkpoint of `{os.path.basename(d['file'])}` "
+           f"(N = {d['N']}, φ = {d['phi']:.4f}, flowing, γ = {d['gamma_from']:.4f}), stepped twice "
+           "in one process: with 600 solves on every try of an LCP (the code before 2026-12-05) "
+           "and with the default (`hard_discs.LCP_SOLVES_FIRST` on the first two tries of a "
+           "step, 600 on the later ones); every LCP timed.  The two trajectories are the same "
+           "until an LCP needs more solves than the smaller budget, and part after that, so "
+           "the comparison is strain per hour (of LCP time and of wall time).", "",
+           "| variant | LCPs | gave up | their time (s) | LCP time (s) | wall (s) | strain | retries | strain / hour of LCP | strain / hour | σ at the end |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        out.append(f"| {r['variant']} | {r['lcps']} | {r['gave_up']} | {r['gave_up_s']:.1f} | "
+                   f"{r['lcp_s']:.1f} | {r['wall_s']:.1f} | {r['strain']:.5f} | {r['retries']} | "
+                   f"{r['strain_per_hour_lcp']:.3f} | {r['strain_per_hour']:.3f} | "
+                   f"{r['sigma_end']:.0f} |")
+    out += _measured_at(d)
+    return out
+
+
 def network_control_section(d):
     ref = d["reference"]
     out = ["## Step-size control on a network (`bench_network_control.py`)", "",
@@ -707,6 +727,7 @@ def main():
                      ("suspension_dmax", suspension_dmax_section), ("lcp", lcp_section),
                      ("lcp_strategies", lcp_strategies_section),
                      ("lcp_factors", lcp_factors_section),
+                     ("lcp_budget", lcp_budget_section),
                      ("network_control_N4096", network_control_section),
                      ("network_shear", network_shear_section), ("flush", flush_section),
                      ("stiff", stiff_section), ("departure", departure_section),
