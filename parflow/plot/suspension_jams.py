@@ -1,0 +1,72 @@
+"""The figure of where flowing suspensions shear-jam while compressed, across N, from
+``parflow.post.suspension_jams``:
+
+* ``suspension_jams_phiSJ``: the phi of each sample's certified shear jam (grey) and their
+  mean with its standard error against N, one colour per compression rate; the fit
+  phi_SJ(N) = phi_inf - a N^-0.71 where three sizes or more allow it, with phi_inf and its
+  error; phi_J = 0.843 of the mixture (dashed).  Samples that jammed at constant phi (after
+  reaching ``compress_to``) are drawn as open circles.
+
+``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
+``python -m parflow.post.suspension_jams``).
+"""
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ..post.suspension_jams import PHI_J, analyse, format_table
+from .base import across_ensembles_cli, new_figure
+
+
+def phi_sj_figure(res: dict) -> Figure:
+    fig = new_figure(6.4, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    rates = sorted({t["compress_rate"] for t in res["table"]})
+    for k, rate in enumerate(rates):
+        rows = [t for t in res["table"] if t["compress_rate"] == rate]
+        color = f"C{k}"
+        for r in res["records"]:
+            if r["compress_rate"] == rate and r["shear_jam"]:
+                ax.plot(r["N"] * (1 + 0.03 * (k - 0.5 * (len(rates) - 1))), r["phi"],
+                        "o", ms=3.5, zorder=1,
+                        color="0.6" if not r["constant_phi"] else "none",
+                        markeredgecolor="0.5")
+        Ns = np.array([t["N"] for t in rows], float)
+        m = np.array([t["phi_mean"] for t in rows], float)
+        e = np.array([t["phi_sem"] for t in rows], float)
+        ax.errorbar(Ns, m, yerr=np.nan_to_num(e), fmt="s", color=color, ms=6, capsize=3,
+                    zorder=3, label=f"compressed at {rate:g} per unit strain: mean ± s.e. "
+                                    f"({', '.join(str(t['n_shear_jams']) for t in rows)} jams)")
+        f = res["fits"].get(rate, {})
+        if f and not math.isnan(f.get("phi_inf", math.nan)):
+            n = np.geomspace(Ns.min() / 1.5, 1e6, 200)
+            ax.plot(n, f["phi_inf"] - f["a"] * n ** -f["x"], "-", color=color, lw=1,
+                    label=f"φ_∞ − a N^−{f['x']:g}: φ_∞ = {f['phi_inf']:.4f} ± "
+                          f"{f['phi_inf_err']:.4f} (χ²/dof {f['chi2_dof']:.1f})")
+    ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
+    ax.set_xscale("log")
+    ax.set_xlabel("N")
+    ax.set_ylabel("φ at the shear jam")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    n = sum(t["n_samples"] for t in res["table"])
+    ax.set_title(f"Where a flowing suspension shear-jams while compressed: {n} samples\n"
+                 "(grey: one each; open: jammed at constant φ, after compress_to)", fontsize=8.5)
+    return fig
+
+
+def main(argv=None) -> int:
+    return across_ensembles_cli(
+        argv, "python -m parflow.plot.suspension_jams",
+        "The figure of phi_SJ(N): where compressed, flowing suspensions shear-jam (PATH: "
+        "ensemble folders, jam tables, or folders holding them)", analyse, format_table,
+        "no compressed suspension ensemble sample found",
+        lambda res: [("suspension_jams_phiSJ", phi_sj_figure(res))])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,247 @@
+"""Where a flowing suspension shear-jams, across N (docs/suspensions.md "A flowing start at
+phi = 0.840"): the finite-size shear-jamming point phi_SJ(N) of the compress-while-flowing
+protocol (``model.compress_rate``: the discs swell while they are sheared, until a compressed
+self-stress is *proved*, status ``jammed``, the certificate in the run file's ``/jam``).
+
+Per sample (:func:`jam_record`, one run file of an ensemble folder): its status; for a jam,
+the phi where it jammed (``/jam`` attrs ``phi``; a sample that reached ``compress_to`` and
+jammed later, at constant phi, has no ``/jam/phi``: its last phi, flagged ``constant_phi``),
+gamma, the certificate's support, tau.b and the shear's share of it (``tau_b_shear`` < 0: the
+flow, not the swelling, compresses the self-stress: a *shear* jam), the strain budget; for a
+sample that did not jam, the phi it reached.
+
+Per N (:func:`analyse`, samples grouped by N and compression rate): the phi of the shear
+jams -- mean, standard deviation, standard error (ddof = 1), count -- and the samples that
+did not shear-jam.  Across N, for one rate: the finite-size form of the jamming point of
+packings (O'Hern et al. 2003: phi*(N) - phi_J ~ N^(-1/(d nu)) with 1/(d nu) = 0.71 in 2D
+and 3D)
+
+    phi_SJ(N) = phi_inf - a N^(-X_FSS),  X_FSS = 0.71 fixed,
+
+by weighted least squares (weights 1/sem^2; ``chi2_dof``; the error of phi_inf from the
+covariance, times sqrt(chi2/dof) when that exceeds 1), and phi_inf against PHI_J = 0.843, the
+jamming point of the mixture (does phi_SJ(N) tend to phi_J?).  Three or four N with four
+samples each: a rough test, and it says so (the errors).
+
+Jam tables (:func:`export`): every sample record of the paths read as one small JSON file
+(kind :data:`JAMS_KIND`), so that ensembles whose run files are gone enter the analysis:
+docs/data/suspension_jams.json holds those docs/suspensions.md quotes.
+
+``python -m parflow.post.suspension_jams PATH... [--json OUT] [--export FILE]`` prints the
+table and the fit; a PATH is an ensemble folder, a jam table, or a folder searched one level
+down for both.  Figure: ``python -m parflow.plot.suspension_jams PATH...``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tomllib
+
+import numpy as np
+
+from ..io import RunFile, atomic_json
+from .ensemble import find_sources, mean_sem, read_table, sample_files
+from .network_across_ensembles import _jsonable, analyse_or_report
+
+JAMS_KIND = "parflow suspension jams"
+JAMS_VERSION = 1
+PHI_J = 0.843                  # phi_J of the mixture (= post.suspension_across_ensembles.PHI_J)
+X_FSS = 0.71                   # 1/(d nu) of the jamming point's finite-size shift
+RECORD_KEYS = ("source", "sample", "seed", "N", "compress_rate", "compress_to", "status",
+               "shear_jam", "phi", "constant_phi", "gamma", "support", "tau_b", "tau_b_shear",
+               "strain_budget", "git_commit")
+
+
+def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
+    """The jam (or its absence) of one suspension run file (see the module docstring)."""
+    with RunFile(path) as rf:
+        attrs = rf.attrs
+        if rf.model != "suspension":
+            raise ValueError(f"{path}: a {rf.model or 'unknown'} run, not a suspension")
+        try:
+            scene = tomllib.loads(rf.scene_text)
+        except tomllib.TOMLDecodeError:
+            scene = {}
+        model = scene.get("model", {})
+        ts = rf.timeseries()
+        g = rf.h5.get("jam")
+        jam = {k: v.item() if isinstance(v, np.generic) else v for k, v in g.attrs.items()} \
+            if g is not None else {}
+    nan = math.nan
+    phi_ts = ts.get("phi")
+    phi_last = float(phi_ts[-1]) if phi_ts is not None and len(phi_ts) \
+        else float(model.get("phi", nan))
+    status = str(attrs.get("status", ""))
+    jammed = status == "jammed" and bool(jam.get("certified", False))
+    has_phi = "phi" in jam
+    tbs = float(jam.get("tau_b_shear", jam.get("tau_b", nan))) if jammed else nan
+    return dict(source=source, sample=int(sample), seed=int(attrs.get("sample_seed", -1)),
+                N=int(model.get("N", 0)), compress_rate=float(model.get("compress_rate", 0.0)),
+                compress_to=float(model.get("compress_to", nan)), status=status,
+                shear_jam=bool(jammed and tbs < 0),
+                phi=float(jam["phi"]) if jammed and has_phi else phi_last,
+                constant_phi=bool(jammed and not has_phi),
+                gamma=float(jam.get("gamma", nan)) if jammed else
+                (float(ts["gamma"][-1]) if len(ts.get("gamma", [])) else nan),
+                support=int(jam.get("support", 0)) if jammed else 0,
+                tau_b=float(jam.get("tau_b", nan)) if jammed else nan, tau_b_shear=tbs,
+                strain_budget=float(jam.get("strain_budget", nan)) if jammed else nan,
+                git_commit=str(attrs.get("git_commit", "")))
+
+
+def read_folder(folder: str) -> list[dict]:
+    """The records of the sample files of an ensemble folder whose run has ended (a sample
+    still running, or one whose file does not load, is left out)."""
+    src = os.path.basename(os.path.normpath(folder))
+    out = []
+    for k, path in sample_files(folder):
+        try:
+            rec = jam_record(path, src, k)
+        except Exception:             # a damaged or foreign file: not a sample of this analysis
+            continue
+        if rec["status"] in ("jammed", "complete", "budget"):
+            out.append(rec)
+    return out
+
+
+def load_table(path: str) -> list[dict]:
+    """The records of a jam table written by :func:`export`; ValueError naming the file if it
+    is not one."""
+    doc = read_table(path, JAMS_KIND, JAMS_VERSION, "suspension jam table")
+    out = []
+    for r in doc.get("samples", []):
+        missing = [k for k in RECORD_KEYS if k not in r]
+        if missing:
+            raise ValueError(f"{path}: a record lacks {', '.join(missing)}")
+        out.append({k: (math.nan if r[k] is None else r[k]) for k in RECORD_KEYS})
+    return out
+
+
+def read_sources(paths) -> list[dict]:
+    """Every record of the ensemble folders and jam tables among ``paths`` (see
+    :func:`find_sources`); a sample found twice (the same source and index) counts once."""
+    folders, tables = find_sources(paths, ".json")
+    recs, seen = [], set()
+    for r in [r for f in folders for r in read_folder(f)] + \
+             [r for t in tables for r in load_table(t)]:
+        key = (r["source"], r["sample"])
+        if key not in seen:
+            seen.add(key)
+            recs.append(r)
+    return recs
+
+
+def export(paths, out: str) -> str:
+    """Write every record read from ``paths`` as one jam table at ``out`` (JSON, written to a
+    twin and renamed; NaN as null)."""
+    recs = read_sources(paths)
+    if not recs:
+        raise ValueError("no suspension ensemble sample found to export")
+    atomic_json(out, _jsonable(dict(kind=JAMS_KIND, version=JAMS_VERSION, samples=recs)),
+                indent=1, allow_nan=False)
+    return out
+
+
+def fit_fss(Ns, mean, sem, x: float = X_FSS) -> dict:
+    """phi_SJ(N) = phi_inf - a N^-x by weighted least squares (weights 1/sem^2); NaN fields
+    with fewer than 3 sizes (no degree of freedom left)."""
+    Ns, m, e = (np.asarray(v, float) for v in (Ns, mean, sem))
+    ok = np.isfinite(m) & np.isfinite(e) & (e > 0)
+    out = dict(x=x, n_sizes=int(ok.sum()), phi_inf=math.nan, phi_inf_err=math.nan,
+               a=math.nan, chi2_dof=math.nan, phi_j=PHI_J, sigmas_below_phi_j=math.nan)
+    if ok.sum() < 3:
+        return out
+    t, w = Ns[ok] ** -x, 1.0 / e[ok] ** 2
+    A = np.column_stack([np.ones_like(t), -t])
+    cov = np.linalg.inv(A.T @ (A * w[:, None]))
+    coef = cov @ (A.T @ (w * m[ok]))
+    chi2 = float(np.sum(w * (m[ok] - A @ coef) ** 2))
+    dof = int(ok.sum()) - 2
+    err = math.sqrt(cov[0, 0]) * max(1.0, math.sqrt(chi2 / dof))
+    out.update(phi_inf=float(coef[0]), a=float(coef[1]), phi_inf_err=err,
+               chi2_dof=chi2 / dof, sigmas_below_phi_j=(PHI_J - float(coef[0])) / err)
+    return out
+
+
+def analyse(paths) -> dict:
+    """Per (compression rate, N): the phi of the shear jams and the samples that did not
+    shear-jam; per rate, the fit across N (:func:`fit_fss`).  ``table``: one row per group."""
+    recs = [r for r in read_sources(paths) if r["compress_rate"] > 0]
+    groups: dict = {}
+    for r in recs:
+        groups.setdefault((r["compress_rate"], r["N"]), []).append(r)
+    table = []
+    for (rate, N), rs in sorted(groups.items()):
+        phis = np.array([r["phi"] for r in rs if r["shear_jam"]], float)
+        m, e, n = mean_sem(phis)
+        table.append(dict(compress_rate=rate, N=N, n_samples=len(rs), n_shear_jams=int(n),
+                          phi_mean=float(m), phi_sd=float(np.std(phis, ddof=1)) if n > 1
+                          else math.nan, phi_sem=float(e), phi_values=phis.tolist(),
+                          constant_phi=sum(1 for r in rs if r["constant_phi"]),
+                          not_shear_jammed=[dict(sample=r["sample"], status=r["status"],
+                                                 phi=r["phi"]) for r in rs
+                                            if not r["shear_jam"]],
+                          sources=sorted({r["source"] for r in rs})))
+    fits = {}
+    for rate in sorted({t["compress_rate"] for t in table}):
+        rows = [t for t in table if t["compress_rate"] == rate]
+        fits[rate] = fit_fss([t["N"] for t in rows], [t["phi_mean"] for t in rows],
+                             [t["phi_sem"] for t in rows])
+    return dict(table=table, fits=fits, records=recs)
+
+
+def format_table(res: dict) -> list[str]:
+    out = ["compress_rate     N  samples  shear jams  phi_SJ mean +- sem (sd)        not shear-jammed"]
+    for t in res["table"]:
+        nj = ", ".join(f"{x['sample']}: {x['status']} at {x['phi']:.4f}"
+                       for x in t["not_shear_jammed"]) or "-"
+        out.append(f"{t['compress_rate']:>13g} {t['N']:>6d} {t['n_samples']:>8d} "
+                   f"{t['n_shear_jams']:>11d}  {t['phi_mean']:.4f} +- {t['phi_sem']:.4f} "
+                   f"({t['phi_sd']:.4f})        {nj}")
+    for rate, f in res["fits"].items():
+        if math.isnan(f["phi_inf"]):
+            out.append(f"rate {rate:g}: {f['n_sizes']} sizes with an error: no fit across N "
+                       f"(3 needed)")
+        else:
+            out.append(f"rate {rate:g}: phi_SJ(N) = phi_inf - a N^-{f['x']:g} over "
+                       f"{f['n_sizes']} sizes: phi_inf = {f['phi_inf']:.4f} +- "
+                       f"{f['phi_inf_err']:.4f}, a = {f['a']:.3g}, chi2/dof = "
+                       f"{f['chi2_dof']:.2f}; phi_J = {PHI_J} is "
+                       f"{f['sigmas_below_phi_j']:+.1f} errors above phi_inf")
+    return out
+
+
+def main(argv=None) -> int:
+    prog = "python -m parflow.post.suspension_jams"
+    ap = argparse.ArgumentParser(prog=prog, description="Where flowing suspensions "
+                                 "compressed while sheared shear-jam, across N (phi_SJ(N))")
+    ap.add_argument("paths", nargs="+", metavar="PATH",
+                    help="ensemble folders, jam tables (JSON), or folders holding them")
+    ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
+    ap.add_argument("--export", metavar="FILE", help="write every sample record read as one "
+                    "jam table (JSON) to FILE")
+    args = ap.parse_args(argv)
+    name = "suspension_jams"
+    for p in args.paths:
+        if not os.path.exists(p):
+            print(f"{name}: no such file or folder {p!r}", file=sys.stderr)
+            return 2
+    res = analyse_or_report(analyse, (args.paths,), name,
+                            "no compressed suspension ensemble sample found (a PATH is an "
+                            "ensemble folder, a jam table, or a folder holding them)")
+    if res is None:
+        return 2
+    print("\n".join(format_table(res)))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(_jsonable(res), fh, indent=1)
+    if args.export:
+        print(f"{name}: wrote {export(args.paths, args.export)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

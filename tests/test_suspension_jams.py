@@ -1,0 +1,135 @@
+"""Where compressed, flowing suspensions shear-jam (parflow.post.suspension_jams): the records
+read from run files of each kind of ending (a shear jam while compressing, a jam at constant
+phi after compress_to, a jam that only the swelling compresses, a sample that flowed to its
+end, one still running), the per-N numbers against numpy, the fit phi_inf - a N^-0.71 on
+exact data, the jam table's round trip, the figure, and the command line's one-line errors."""
+import json
+import math
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from parflow.post import suspension_jams as sj
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENE = """
+[model]
+name = "suspension"
+N = {N}
+phi = 0.820
+compress_rate = {rate}
+compress_to = 0.8429
+"""
+
+
+def run_file(path, N, status, phi_ts, jam=None, rate=0.01, seed=1):
+    """A minimal suspension run file: the attributes, phi and gamma columns, and /jam."""
+    with h5py.File(path, "w") as f:
+        f.attrs.update(format="parflow-run-1", model="suspension", status=status,
+                       scene=SCENE.format(N=N, rate=rate), sample_seed=seed,
+                       git_commit="abc123")
+        g = f.create_group("timeseries")
+        g["phi"] = np.asarray(phi_ts, float)
+        g["gamma"] = np.linspace(0.0, 2.0, len(phi_ts))
+        if jam is not None:
+            j = f.create_group("jam")
+            j.attrs.update(certified=True, gamma=2.0, support=100, tau_b=-50.0,
+                           strain_budget=1e-12, **jam)
+
+
+def ensemble(folder, N, samples, rate=0.01):
+    os.makedirs(folder)
+    with h5py.File(os.path.join(folder, "ensemble.h5"), "w"):
+        pass
+    for k, (status, phi_ts, jam) in enumerate(samples):
+        run_file(os.path.join(folder, f"sample_{k:04d}.h5"), N, status, phi_ts, jam, rate,
+                 seed=100 * N + k)
+
+
+@pytest.fixture
+def folders(tmp_path):
+    ensemble(tmp_path / "jams_N1024", 1024, [
+        ("jammed", [0.82, 0.838], dict(phi=0.8381, tau_b_shear=-40.0)),     # shear jam
+        ("jammed", [0.82, 0.8429], dict()),                                 # constant phi
+        ("jammed", [0.82, 0.8395], dict(phi=0.8395, tau_b_shear=+3.0)),     # the swelling's
+        ("complete", [0.82, 0.8429], None),                                 # flowed on
+        ("running", [0.82, 0.83], None)])                                   # not ended
+    ensemble(tmp_path / "jams_N2048", 2048, [
+        ("jammed", [0.82, 0.8405], dict(phi=0.8405, tau_b_shear=-60.0)),
+        ("jammed", [0.82, 0.8411], dict(phi=0.8411, tau_b_shear=-70.0))])
+    ensemble(tmp_path / "jams_N4096", 4096, [
+        ("jammed", [0.82, 0.8412], dict(phi=0.8412, tau_b_shear=-90.0)),
+        ("jammed", [0.82, 0.8414], dict(phi=0.8414, tau_b_shear=-95.0))])
+    return tmp_path
+
+
+def test_records_and_per_n_numbers(folders):
+    recs = sj.read_folder(str(folders / "jams_N1024"))
+    assert [r["sample"] for r in recs] == [0, 1, 2, 3]             # the running one left out
+    shear = [r["shear_jam"] for r in recs]
+    assert shear == [True, True, False, False]
+    assert recs[1]["constant_phi"] and recs[1]["phi"] == 0.8429    # its last phi
+    assert recs[0]["phi"] == 0.8381 and recs[3]["phi"] == 0.8429
+    res = sj.analyse([str(folders)])
+    rows = {t["N"]: t for t in res["table"]}
+    assert sorted(rows) == [1024, 2048, 4096]
+    t = rows[1024]
+    assert (t["n_samples"], t["n_shear_jams"], t["constant_phi"]) == (4, 2, 1)
+    v = np.array([0.8381, 0.8429])
+    assert t["phi_mean"] == pytest.approx(v.mean(), abs=1e-15)
+    assert t["phi_sd"] == pytest.approx(v.std(ddof=1), rel=1e-12)
+    assert t["phi_sem"] == pytest.approx(v.std(ddof=1) / math.sqrt(2), rel=1e-12)
+    assert [x["sample"] for x in t["not_shear_jammed"]] == [2, 3]
+    f = res["fits"][0.01]
+    assert f["n_sizes"] == 3 and np.isfinite(f["phi_inf"]) and f["phi_inf_err"] > 0
+
+
+def test_fit_recovers_exact_finite_size_law():
+    Ns = np.array([1024, 2048, 4096, 8192])
+    m = 0.843 - 0.5 * Ns ** -sj.X_FSS
+    f = sj.fit_fss(Ns, m, np.full(4, 1e-4))
+    assert f["phi_inf"] == pytest.approx(0.843, abs=1e-12)
+    assert f["a"] == pytest.approx(0.5, rel=1e-9)
+    assert f["chi2_dof"] < 1e-12
+    # the error from the covariance: a noisier size widens it
+    f2 = sj.fit_fss(Ns, m, np.array([1e-4, 1e-4, 1e-4, 1e-3]))
+    assert f2["phi_inf_err"] > f["phi_inf_err"]
+    assert math.isnan(sj.fit_fss(Ns[:2], m[:2], np.full(2, 1e-4))["phi_inf"])
+
+
+def test_table_round_trip_and_figure(folders, tmp_path):
+    out = str(tmp_path / "jams.json")
+    sj.export([str(folders)], out)
+    a = sj.analyse([str(folders)])
+    b = sj.analyse([out])
+    assert json.dumps(sj._jsonable(a["table"])) == json.dumps(sj._jsonable(b["table"]))
+    # a table and the folders it came from: every sample once
+    c = sj.analyse([out, str(folders)])
+    assert [t["n_samples"] for t in c["table"]] == [t["n_samples"] for t in a["table"]]
+    with open(tmp_path / "other.json", "w") as fh:
+        json.dump(dict(kind="something else", version=1), fh)
+    with pytest.raises(ValueError, match="not a suspension jam table"):
+        sj.load_table(str(tmp_path / "other.json"))
+    from parflow.plot.suspension_jams import phi_sj_figure
+    fig = phi_sj_figure(a)
+    assert len(fig.axes) == 1 and len(fig.axes[0].lines) > 3
+
+
+@pytest.mark.serial_only
+def test_command_line(folders, tmp_path):
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "parflow.post.suspension_jams", *args],
+                              capture_output=True, text=True, cwd=ROOT, timeout=120)
+    res = cli(str(folders), "--json", str(tmp_path / "r.json"))
+    assert res.returncode == 0, res.stderr
+    assert "phi_inf" in res.stdout and json.load(open(tmp_path / "r.json"))["table"]
+    for args, what in (([str(tmp_path / "nothing")], "no such file"),
+                       ([str(tmp_path / "empty")], "no compressed suspension")):
+        os.makedirs(tmp_path / "empty", exist_ok=True)
+        res = cli(*args)
+        assert res.returncode == 2 and what in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1
