@@ -99,6 +99,17 @@ def test_fit_recovers_exact_finite_size_law():
     f2 = sj.fit_fss(Ns, m, np.array([1e-4, 1e-4, 1e-4, 1e-3]))
     assert f2["phi_inf_err"] > f["phi_inf_err"]
     assert math.isnan(sj.fit_fss(Ns[:2], m[:2], np.full(2, 1e-4))["phi_inf"])
+    # the exponent free: found on the grid from exact data at another exponent
+    Ns5 = np.array([1024, 2048, 4096, 8192, 16384])
+    m5 = 0.8425 - 2.0 * Ns5 ** -0.9
+    g = sj.fit_fss_free(Ns5, m5, np.full(5, 1e-4))
+    assert g["x"] == pytest.approx(0.9, abs=1e-9) and g["chi2"] < 1e-12
+    assert g["a"] == pytest.approx(2.0, rel=1e-8)
+    assert g["phi_inf"] == pytest.approx(0.8425, abs=1e-10)
+    assert g["phi_inf_range"][0] <= 0.8425 <= g["phi_inf_range"][1]
+    assert g["x_range"][0] <= 0.9 <= g["x_range"][1]
+    assert not math.isnan(sj.fit_fss_free(Ns, m, np.full(4, 1e-4))["phi_inf"])
+    assert math.isnan(sj.fit_fss_free(Ns[:3], m[:3], np.full(3, 1e-4))["phi_inf"])
 
 
 def test_table_round_trip_and_figure(folders, tmp_path):

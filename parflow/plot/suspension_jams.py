@@ -4,7 +4,8 @@
 * ``suspension_jams_phiSJ``: the phi of each sample's certified shear jam (grey) and their
   mean with its standard error against N, one colour per compression rate; the fit
   phi_SJ(N) = phi_inf - a N^-0.71 where three sizes or more allow it, with phi_inf and its
-  error; phi_J = 0.843 of the mixture (dashed).  Samples that jammed at constant phi (after
+  error, and with four sizes or more the fit with the exponent free (dotted); phi_J = 0.843
+  of the mixture (dashed).  Samples that jammed at constant phi (after
   reaching ``compress_to``) are drawn as open circles.
 
 ``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
@@ -47,6 +48,12 @@ def phi_sj_figure(res: dict) -> Figure:
             ax.plot(n, f["phi_inf"] - f["a"] * n ** -f["x"], "-", color=color, lw=1,
                     label=f"φ_∞ − a N^−{f['x']:g}: φ_∞ = {f['phi_inf']:.4f} ± "
                           f"{f['phi_inf_err']:.4f} (χ²/dof {f['chi2_dof']:.1f})")
+        g = res.get("fits_free", {}).get(rate, {})
+        if g and not math.isnan(g.get("phi_inf", math.nan)):
+            n = np.geomspace(Ns.min() / 1.5, 1e6, 200)
+            ax.plot(n, g["phi_inf"] - g["a"] * n ** -g["x"], ":", color=color, lw=1.2,
+                    label=f"exponent free: N^−{g['x']:.2f}, φ_∞ = {g['phi_inf']:.4f} "
+                          f"({g['phi_inf_range'][0]:.4f}–{g['phi_inf_range'][1]:.4f})")
     ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
     ax.set_xscale("log")
     ax.set_xlabel("N")

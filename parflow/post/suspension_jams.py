@@ -20,8 +20,10 @@ and 3D)
 
 by weighted least squares (weights 1/sem^2; ``chi2_dof``; the error of phi_inf from the
 covariance, times sqrt(chi2/dof) when that exceeds 1), and phi_inf against PHI_J = 0.843, the
-jamming point of the mixture (does phi_SJ(N) tend to phi_J?).  Three or four N with four
-samples each: a rough test, and it says so (the errors).
+jamming point of the mixture (does phi_SJ(N) tend to phi_J?); with four sizes or more also
+with the exponent free (:func:`fit_fss_free`: a grid over it, and the range of phi_inf over
+the exponents whose chi2 is within 1 of the least).  Three or four N with a few samples
+each: a rough test, and it says so (the errors).
 
 Jam tables (:func:`export`): every sample record of the paths read as one small JSON file
 (kind :data:`JAMS_KIND`), so that ensembles whose run files are gone enter the analysis:
@@ -166,6 +168,30 @@ def fit_fss(Ns, mean, sem, x: float = X_FSS) -> dict:
     return out
 
 
+X_GRID = np.round(np.arange(0.20, 2.0001, 0.005), 3)   # exponents tried by fit_fss_free
+
+
+def fit_fss_free(Ns, mean, sem) -> dict:
+    """phi_SJ(N) = phi_inf - a N^-x with x free too: :func:`fit_fss` at every x of
+    :data:`X_GRID`, the x of least chi2 kept; ``phi_inf_range``: the phi_inf of the x whose
+    chi2 is within 1 of the least (a profile interval).  NaN fields with fewer than 4 sizes
+    (three parameters)."""
+    fits = [fit_fss(Ns, mean, sem, float(x)) for x in X_GRID]
+    out = dict(x=math.nan, phi_inf=math.nan, a=math.nan, phi_inf_range=[math.nan, math.nan],
+               x_range=[math.nan, math.nan], chi2=math.nan, n_sizes=fits[0]["n_sizes"])
+    if fits[0]["n_sizes"] < 4:
+        return out
+    chi2 = np.array([f["chi2_dof"] * (f["n_sizes"] - 2) for f in fits])
+    k = int(np.argmin(chi2))
+    near = chi2 <= chi2[k] + 1.0
+    phis = np.array([f["phi_inf"] for f in fits])[near]
+    out.update(x=float(X_GRID[k]), phi_inf=fits[k]["phi_inf"], a=fits[k]["a"],
+               chi2=float(chi2[k]),
+               phi_inf_range=[float(phis.min()), float(phis.max())],
+               x_range=[float(X_GRID[near].min()), float(X_GRID[near].max())])
+    return out
+
+
 def analyse(paths) -> dict:
     """Per (compression rate, N): the phi of the shear jams and the samples that did not
     shear-jam; per rate, the fit across N (:func:`fit_fss`).  ``table``: one row per group."""
@@ -185,12 +211,13 @@ def analyse(paths) -> dict:
                                                  phi=r["phi"]) for r in rs
                                             if not r["shear_jam"]],
                           sources=sorted({r["source"] for r in rs})))
-    fits = {}
+    fits, free = {}, {}
     for rate in sorted({t["compress_rate"] for t in table}):
         rows = [t for t in table if t["compress_rate"] == rate]
-        fits[rate] = fit_fss([t["N"] for t in rows], [t["phi_mean"] for t in rows],
-                             [t["phi_sem"] for t in rows])
-    return dict(table=table, fits=fits, records=recs)
+        args = ([t["N"] for t in rows], [t["phi_mean"] for t in rows],
+                [t["phi_sem"] for t in rows])
+        fits[rate], free[rate] = fit_fss(*args), fit_fss_free(*args)
+    return dict(table=table, fits=fits, fits_free=free, records=recs)
 
 
 def format_table(res: dict) -> list[str]:
@@ -211,6 +238,13 @@ def format_table(res: dict) -> list[str]:
                        f"{f['phi_inf_err']:.4f}, a = {f['a']:.3g}, chi2/dof = "
                        f"{f['chi2_dof']:.2f}; phi_J = {PHI_J} is "
                        f"{f['sigmas_below_phi_j']:+.1f} errors above phi_inf")
+        g = res.get("fits_free", {}).get(rate)
+        if g is not None and not math.isnan(g["phi_inf"]):
+            out.append(f"rate {rate:g}, exponent free: x = {g['x']:.3f} "
+                       f"({g['x_range'][0]:.3f}-{g['x_range'][1]:.3f}), phi_inf = "
+                       f"{g['phi_inf']:.4f} ({g['phi_inf_range'][0]:.4f}-"
+                       f"{g['phi_inf_range'][1]:.4f}: chi2 within 1 of its least, "
+                       f"{g['chi2']:.2f})")
     return out
 
 
