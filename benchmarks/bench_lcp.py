@@ -200,7 +200,8 @@ def budget(run: str, steps: int) -> int:
         return 2
     rows, meta = [], None
     first0 = su.LCP_SOLVES_FIRST
-    for name, first in (("600 solves on every try", su.LCP_SOLVES), ("default", first0)):
+    for name, first in ((f"{su.LCP_SOLVES} solves on every try", su.LCP_SOLVES),
+                        ("default", first0)):
         sim, state = _stepper(run)
         solve, times = su.solve_lcp, []
 

@@ -49,7 +49,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ranks-per-sample", type=int, metavar="r", help="ranks of each sample's "
                    "group (overrides ensemble.ranks_per_sample; default 1)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the figures at the end")
-    p.add_argument("--print-scene", action="store_true", help="print the embedded default scene and exit (nothing else with it)")
+    p.add_argument("--print-scene", action="store_true",
+                   help="print the embedded default scene and exit (nothing else with it)")
     return p
 
 
