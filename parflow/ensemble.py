@@ -338,6 +338,34 @@ def _restart_scene_of(path: str) -> tuple:
         return run.scene_text, run.settings
 
 
+class sample_log:
+    """While sample k runs: its group leader's log lines on stderr, each marked "sample k:".
+
+    The job's log (setup_logging) has a handler on world rank 0 only, so the samples of the
+    other groups would run silent; inside this context every group's leader prints its own
+    sample's lines (restart, progress, end), world rank 0 included, and the ensemble's
+    lines outside it stay world rank 0's alone."""
+
+    def __init__(self, group, k: int, quiet: bool):
+        self.on = group.getRank() == 0 and not quiet
+        self.k, self.saved = k, None
+
+    def __enter__(self):
+        if self.on:
+            self.saved = (list(log.handlers), log.level)
+            h = logging.StreamHandler(sys.stderr)
+            h.setFormatter(logging.Formatter(f"[parflow] sample {self.k}: %(message)s"))
+            log.handlers[:] = [h]
+            log.setLevel(logging.INFO)
+        return self
+
+    def __exit__(self, *exc):
+        if self.saved is not None:
+            log.handlers[:], level = self.saved
+            log.setLevel(level)
+        return False
+
+
 def run_sample(group, folder: str, k: int, mode: str, base: dict, cmdline, max_steps,
                quiet: bool) -> dict:
     """Run (or continue) sample k on the group's communicator; its record.  Exceptions of
@@ -442,7 +470,8 @@ def run_ensemble(base: dict, folder: str, samples: int, rps: int, *, restart: bo
                 break
             rec, stop = None, None
             try:
-                rec = run_sample(group, folder, k, plan[k], base, cmdline, max_steps, quiet)
+                with sample_log(group, k, quiet):
+                    rec = run_sample(group, folder, k, plan[k], base, cmdline, max_steps, quiet)
             except (KeyboardInterrupt, Terminated) as exc:
                 stop = exc
                 rec = dict(sample=k, seed=sample_seed(base["seed"], k), status="interrupted",

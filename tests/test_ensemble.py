@@ -187,6 +187,22 @@ def test_two_samples_on_two_ranks_equal_serial(serial, tmp_path):
 
 
 @serial_only
+def test_every_group_logs_its_sample(tmp_path):
+    """Two samples on two ranks, not quiet: each sample's lines come from its own group's
+    leader, marked with the sample's index (before, only world rank 0's sample was heard);
+    the ensemble's own lines once."""
+    res = shear(scene(tmp_path), "--samples", 2, "--output", tmp_path / "ens", "--no-plots", mpi=2)
+    assert res.returncode == 0, res.stderr
+    lines = res.stderr.splitlines()
+    for k in range(2):
+        own = [ln for ln in lines if ln.startswith(f"[parflow] sample {k}: ")]
+        assert sum(" steps, " in ln and "wrote" in ln for ln in own) == 1, res.stderr
+        assert any("chain:" in ln for ln in own), res.stderr
+    assert sum(ln.startswith("[parflow] ensemble: 2 samples (2 to run)") for ln in lines) == 1, res.stderr
+    assert not any("sample" not in ln and " steps, " in ln for ln in lines), res.stderr
+
+
+@serial_only
 def test_groups_of_two_ranks(serial, tmp_path):
     """ranks_per_sample = 2 on 2 ranks: one group, each sample on both ranks; the same samples
     as on one rank to solver round-off (the chain's replicated solve: bit for bit here)."""
