@@ -144,3 +144,28 @@ def test_command_line(folders, tmp_path):
         res = cli(*args)
         assert res.returncode == 2 and what in res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_stopped_samples_are_lower_bounds(folders):
+    """Samples stopped still flowing (status interrupted) enter as the phi they reached:
+    listed apart, out of the means and the fit; a size with no jam yet is a row without a
+    mean; the figure draws them as lower bounds."""
+    ensemble(folders / "jams_N8192", 8192, [
+        ("interrupted", [0.82, 0.8416], None),
+        ("interrupted", [0.82, 0.8415], None),
+        ("running", [0.82, 0.8410], None)])
+    res = sj.analyse([str(folders)])
+    rows = {t["N"]: t for t in res["table"]}
+    t = rows[8192]
+    assert (t["n_samples"], t["n_shear_jams"]) == (2, 0) and math.isnan(t["phi_mean"])
+    assert [(x["status"], x["phi"]) for x in t["not_shear_jammed"]] == \
+        [("interrupted", 0.8416), ("interrupted", 0.8415)]
+    before = sj.analyse([str(folders / f"jams_N{n}") for n in (1024, 2048, 4096)])
+    assert res["fits"][0.01] == before["fits"][0.01]            # the fit has no N = 8192
+    lines = sj.format_table(res)
+    row = [ln for ln in lines if ln.split()[:2] == ["0.01", "8192"]]
+    assert len(row) == 1 and "interrupted at 0.8416 (still flowing)" in row[0] and "nan" not in row[0]
+    from parflow.plot.suspension_jams import phi_sj_figure
+    ax = phi_sj_figure(res).axes[0]
+    up = [ln for ln in ax.lines if ln.get_marker() == "^"]
+    assert len(up) == 1 and sorted(up[0].get_ydata()) == [0.8415, 0.8416, 0.8429]  # + N = 1024 complete

@@ -6,7 +6,9 @@
   phi_SJ(N) = phi_inf - a N^-0.71 where three sizes or more allow it, with phi_inf and its
   error, and with four sizes or more the fit with the exponent free (dotted); phi_J = 0.843
   of the mixture (dashed).  Samples that jammed at constant phi (after
-  reaching ``compress_to``) are drawn as open circles.
+  reaching ``compress_to``) are drawn as open circles; samples that ended or were stopped
+  still flowing, as triangles pointing up at the phi they reached (a lower bound of their
+  jam; not in the means or the fits).
 
 ``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
 ``python -m parflow.post.suspension_jams``).
@@ -19,7 +21,7 @@ import sys
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..post.suspension_jams import PHI_J, analyse, format_table
+from ..post.suspension_jams import FLOWING, PHI_J, analyse, format_table
 from .base import across_ensembles_cli, new_figure
 
 
@@ -36,6 +38,14 @@ def phi_sj_figure(res: dict) -> Figure:
                         "o", ms=3.5, zorder=1,
                         color="0.6" if not r["constant_phi"] else "none",
                         markeredgecolor="0.5")
+        up = [(r["N"], r["phi"]) for r in res["records"]
+              if r["compress_rate"] == rate and r["status"] in FLOWING and not r["shear_jam"]]
+        if up:
+            x, y = np.array(up, float).T
+            ax.plot(x * (1 + 0.03 * (k - 0.5 * (len(rates) - 1))), y, "^", ms=5, zorder=2,
+                    color="none", markeredgecolor=color,
+                    label=f"still flowing at the end (a lower bound), {len(up)}")
+        rows = [t for t in rows if t["n_shear_jams"]]
         Ns = np.array([t["N"] for t in rows], float)
         m = np.array([t["phi_mean"] for t in rows], float)
         e = np.array([t["phi_sem"] for t in rows], float)
@@ -62,7 +72,8 @@ def phi_sj_figure(res: dict) -> Figure:
     ax.legend(fontsize=7, loc="lower right")
     n = sum(t["n_samples"] for t in res["table"])
     ax.set_title(f"Where a flowing suspension shear-jams while compressed: {n} samples\n"
-                 "(grey: one each; open: jammed at constant φ, after compress_to)", fontsize=8.5)
+                 "(grey: one each; open: jammed at constant φ, after compress_to; "
+                 "▵: still flowing)", fontsize=8.5)
     return fig
 
 

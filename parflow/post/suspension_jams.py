@@ -52,6 +52,8 @@ JAMS_KIND = "parflow suspension jams"
 JAMS_VERSION = 1
 PHI_J = 0.843                  # phi_J of the mixture (= post.suspension_across_ensembles.PHI_J)
 X_FSS = 0.71                   # 1/(d nu) of the jamming point's finite-size shift
+ENDED = ("jammed", "complete", "budget", "interrupted")   # the statuses read
+FLOWING = ("complete", "budget", "interrupted")   # ended still flowing: phi a lower bound
 RECORD_KEYS = ("source", "sample", "seed", "N", "compress_rate", "compress_to", "status",
                "shear_jam", "phi", "constant_phi", "gamma", "support", "tau_b", "tau_b_shear",
                "strain_budget", "git_commit")
@@ -95,8 +97,9 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
 
 
 def read_folder(folder: str) -> list[dict]:
-    """The records of the sample files of an ensemble folder whose run has ended (a sample
-    still running, or one whose file does not load, is left out)."""
+    """The records of the sample files of an ensemble folder whose run has ended or was
+    stopped (``interrupted``: the phi it flowed to is a lower bound of where it would have
+    jammed); a sample still running, or one whose file does not load, is left out."""
     src = os.path.basename(os.path.normpath(folder))
     out = []
     for k, path in sample_files(folder):
@@ -104,7 +107,7 @@ def read_folder(folder: str) -> list[dict]:
             rec = jam_record(path, src, k)
         except Exception:             # a damaged or foreign file: not a sample of this analysis
             continue
-        if rec["status"] in ("jammed", "complete", "budget"):
+        if rec["status"] in ENDED:
             out.append(rec)
     return out
 
@@ -224,10 +227,12 @@ def format_table(res: dict) -> list[str]:
     out = ["compress_rate     N  samples  shear jams  phi_SJ mean +- sem (sd)        not shear-jammed"]
     for t in res["table"]:
         nj = ", ".join(f"{x['sample']}: {x['status']} at {x['phi']:.4f}"
+                       + (" (still flowing)" if x["status"] in FLOWING else "")
                        for x in t["not_shear_jammed"]) or "-"
+        mean = (f"{t['phi_mean']:.4f} +- {t['phi_sem']:.4f} ({t['phi_sd']:.4f})"
+                if t["n_shear_jams"] else f"{'-':<24s}")
         out.append(f"{t['compress_rate']:>13g} {t['N']:>6d} {t['n_samples']:>8d} "
-                   f"{t['n_shear_jams']:>11d}  {t['phi_mean']:.4f} +- {t['phi_sem']:.4f} "
-                   f"({t['phi_sd']:.4f})        {nj}")
+                   f"{t['n_shear_jams']:>11d}  {mean}        {nj}")
     for rate, f in res["fits"].items():
         if math.isnan(f["phi_inf"]):
             out.append(f"rate {rate:g}: {f['n_sizes']} sizes with an error: no fit across N "
