@@ -233,4 +233,6 @@ def test_solver_failure_is_not_jamming(dense_state, monkeypatch):
         sim.step()
     assert isinstance(ei.value, SolveError) and not isinstance(ei.value, hd.ShearJammed)
     assert "broken on purpose" in str(ei.value) and "certified = False" in str(ei.value)
-    assert sim.upward_searches == 1 and sim.state.gamma == g0
+    # the step, and once more with the last-resort budget: an upward search in each
+    assert sim.upward_searches == 2 and sim.last_resorts == 1 and sim.state.gamma == g0
+    assert isinstance(ei.value, hd.LCPGaveUp) and "last-resort budget too" in str(ei.value)

@@ -245,6 +245,44 @@ def test_first_tries_get_the_smaller_lcp_budget(dense, monkeypatch):
     assert st.dgamma == pytest.approx(dg0 * hd.RETRY_FACTOR ** 2, rel=1e-12)
 
 
+def test_last_resort_budget_before_a_solver_failure(dense, monkeypatch):
+    """A step whose LCPs give up at every size (and no compressed self-stress proves a jam)
+    is taken again with the last-resort budget, and succeeds there like the plain step; if
+    that gives up too, the run fails with LCPGaveUp (a ContactSolveError) saying so."""
+    import copy
+    ref = hd.Suspension(copy.deepcopy(dense))
+    ref.step()
+    expect = ref.step()
+    sim = hd.Suspension(copy.deepcopy(dense))
+    sim.step()
+    real, budgets = hd.solve_lcp, []
+
+    def gives_up(S, q, warm=None, **kw):
+        budgets.append(kw.get("max_solves"))
+        if kw.get("max_solves") != hd.LCP_SOLVES_LAST:
+            raise co.LCPFailure("made to give up")
+        assert kw["max_singular"] == hd.SINGULAR_LAST
+        return real(S, q, warm, **kw)
+    monkeypatch.setattr(hd, "solve_lcp", gives_up)
+    got = sim.step()
+    assert sim.last_resorts == 1 and not sim._last_resort
+    assert budgets.count(hd.LCP_SOLVES_LAST) == 1 and len(budgets) > 3
+    assert got.dgamma == expect.dgamma and got.sigma == pytest.approx(expect.sigma, rel=1e-9)
+    np.testing.assert_allclose(sim.state.s, ref.state.s, rtol=0, atol=1e-12)
+    assert sim.checkpoint()["last_resorts"] == 1
+    assert hd.Suspension.restore(sim.checkpoint()).last_resorts == 1
+
+    def always(S, q, warm=None, **kw):
+        raise co.LCPFailure("made to give up")
+    monkeypatch.setattr(hd, "solve_lcp", always)
+    s0 = sim.state.s.copy()
+    with pytest.raises(hd.LCPGaveUp, match="last-resort budget too") as exc:
+        sim.step()
+    assert isinstance(exc.value, co.ContactSolveError)
+    assert sim.last_resorts == 2 and not sim._last_resort
+    np.testing.assert_array_equal(sim.state.s, s0)          # the state left at the last step
+
+
 def test_steps_no_overlap_and_sigma_identity(dense):
     st = dense.copy()
     sim = hd.Suspension(st)
