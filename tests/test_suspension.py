@@ -271,6 +271,9 @@ def test_last_resort_budget_before_a_solver_failure(dense, monkeypatch):
     np.testing.assert_allclose(sim.state.s, ref.state.s, rtol=0, atol=1e-12)
     assert sim.checkpoint()["last_resorts"] == 1
     assert hd.Suspension.restore(sim.checkpoint()).last_resorts == 1
+    # the first row of a run (probe, also on a restart) likewise
+    c, f, V, dg = sim.probe()
+    assert sim.last_resorts == 2 and not sim._last_resort and f.shape == (len(c),)
 
     def always(S, q, warm=None, **kw):
         raise co.LCPFailure("made to give up")
@@ -279,8 +282,11 @@ def test_last_resort_budget_before_a_solver_failure(dense, monkeypatch):
     with pytest.raises(hd.LCPGaveUp, match="last-resort budget too") as exc:
         sim.step()
     assert isinstance(exc.value, co.ContactSolveError)
-    assert sim.last_resorts == 2 and not sim._last_resort
+    assert sim.last_resorts == 3 and not sim._last_resort
     np.testing.assert_array_equal(sim.state.s, s0)          # the state left at the last step
+    with pytest.raises(hd.LCPGaveUp, match="last-resort budget too"):   # not a traceback
+        sim.probe()
+    assert sim.last_resorts == 4 and not sim._last_resort
 
 
 def test_steps_no_overlap_and_sigma_identity(dense):

@@ -266,15 +266,26 @@ class Suspension:
         step, as in :meth:`step` (the first row of a run, and what analyses look at)."""
         st = self.state
         c = find_candidates(st.s, st.radii, st.h, st.E, self.skin)
-        dg = self.next_dgamma()
-        while True:
-            try:
-                _, _, f, V, _, _ = self.forces(c, dg, direction)
-                return c, f, V, dg
-            except LCPFailure:
-                dg *= 0.1
-                if dg < self.dg_min:
-                    raise
+        dg0 = dg = self.next_dgamma()
+        try:
+            while True:
+                try:
+                    _, _, f, V, _, _ = self.forces(c, dg, direction)
+                    return c, f, V, dg
+                except LCPFailure as exc:
+                    dg *= 0.1
+                    if dg >= self.dg_min:
+                        continue
+                    if self._last_resort:
+                        raise LCPGaveUp(
+                            f"suspension: the contact LCP failed at gamma = {st.gamma:.10g} "
+                            f"for every step from {dg0:.3g} down to dg_min = {self.dg_min:g} "
+                            f"(with the last-resort budget too; last: {exc}): a solver "
+                            f"failure") from None
+                    self.last_resorts += 1      # as in step(): once more, the larger budget
+                    self._last_resort, dg = True, dg0
+        finally:
+            self._last_resort = False
 
     def step(self, direction: int = 1, cap: float | None = None) -> StepStats:
         """One step of strain magnitude dg (chosen here, at most ``cap``) in ``direction``
