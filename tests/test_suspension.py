@@ -288,6 +288,17 @@ def test_last_resort_budget_before_a_solver_failure(dense, monkeypatch):
         sim.probe()
     assert sim.last_resorts == 4 and not sim._last_resort
 
+    # every try solved but rejected (w < 0 reported), no certificate: more solves would not
+    # help, so no last resort -- a plain ContactSolveError
+    def rejected(S, q, warm=None, **kw):
+        f, info = real(S, q, warm, **kw)
+        info.min_w = -1.0
+        return f, info
+    monkeypatch.setattr(hd, "solve_lcp", rejected)
+    with pytest.raises(co.ContactSolveError, match="not proved infeasible") as exc:
+        sim.step()
+    assert not isinstance(exc.value, hd.LCPGaveUp) and sim.last_resorts == 4
+
 
 def test_steps_no_overlap_and_sigma_identity(dense):
     st = dense.copy()

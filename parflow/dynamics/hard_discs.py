@@ -166,7 +166,7 @@ class Suspension:
         self.infeasible_reductions = 0
         self.upward_searches = 0       # steps that searched above their first size
         self.last_resorts = 0          # steps taken again with the last-resort LCP budget
-        self._last_resort = False
+        self._last_resort = self._gave_up = False
         self.omega = state.volume
         # compression while shearing: the discs swell, R_i = R0_i sqrt(phi / phi0), so that
         # phi grows by compress_rate per unit strain applied until it reaches compress_to
@@ -292,9 +292,9 @@ class Suspension:
         (+1: gamma grows, -1: reversed flow, gamma decreases).  V_na is the non-affine
         velocity per unit strain *along the direction of the flow*, so sigma = |V_na|^2 /
         Omega >= 0 either way.  A step whose LCPs give up at every size without a proof of
-        jamming is taken again from its start with the last-resort budget
-        (LCP_SOLVES_LAST solves, SINGULAR_LAST singular sets; counted in ``last_resorts``)
-        before :class:`LCPGaveUp` ends the run."""
+        jamming, one or more of its LCPs having given up, is taken again from its start with
+        the last-resort budget (LCP_SOLVES_LAST solves, SINGULAR_LAST singular sets; counted
+        in ``last_resorts``) before :class:`LCPGaveUp` ends the run."""
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction!r}")
         try:
@@ -319,6 +319,7 @@ class Suspension:
         dg = self.next_dgamma(cap)
         sig_max = 2.0 * float(st.radii.max())
         tried, why, upward, cert = [], "", None, None
+        self._gave_up = False           # an LCP of this step gave up (LCPFailure)
         while True:
             try:
                 S, q, f, V, info, warm = self.forces(c, dg, direction,
@@ -343,6 +344,7 @@ class Suspension:
                            f"at dg = {dg:.3g}")
             except LCPFailure as exc:
                 feasible, vmax, why = False, math.inf, f"{exc} at dg = {dg:.3g}"
+                self._gave_up = True
             if feasible:
                 vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
                 swell = 2.0 * self._swell(dg) * float(self.radii0.max())
@@ -480,7 +482,9 @@ class Suspension:
     def _failed(self, cert, tried: list, why: str):
         """No step was accepted and jamming is not proved: a solver failure."""
         last = " (with the last-resort budget too)" if self._last_resort else ""
-        raise LCPGaveUp(
+        # the last-resort budget can only help where an LCP gave up: where every try was
+        # solved and rejected (w < 0: overlap), more solves change nothing
+        raise (LCPGaveUp if self._gave_up else ContactSolveError)(
             f"suspension: the contact LCP failed at gamma = {self.state.gamma:.10g} for every "
             f"step tried ({', '.join(f'{d:.3g}' for d in tried)}; last: {why}), but it is not "
             f"proved infeasible for every step (LP at dg = {cert.dg:.3g}: certified = "
