@@ -72,8 +72,8 @@ RETRY_FACTOR = 0.1
 LCP_SOLVES_FIRST = 150
 LCP_SOLVES = 600
 UPWARD_TRIES = 4
-# A step that fails at every size tried without a proof of jamming is taken again once with
-# a last-resort budget (:class:`LCPGaveUp`) before the run fails: measured 2026-12-05, N =
+# A step that fails at every size tried without a proof of jamming, an LCP having given up
+# on the way, is taken again once with a last-resort budget (:class:`LCPGaveUp`) before the run fails: measured 2026-12-05, N =
 # 8192 compressed while flowing (sample 0 of runs/ensemble_jams_N8192_compress_to_phiJ.toml,
 # phi = 0.84158, sigma = 8.8e8) the LCP gave up at every step tried (after 336 solves, 21 on
 # singular active sets) with the LP finding no compressed self-stress; with 5 000 solves and
@@ -291,8 +291,8 @@ class Suspension:
         """One step of strain magnitude dg (chosen here, at most ``cap``) in ``direction``
         (+1: gamma grows, -1: reversed flow, gamma decreases).  V_na is the non-affine
         velocity per unit strain *along the direction of the flow*, so sigma = |V_na|^2 /
-        Omega >= 0 either way.  A step whose LCPs give up at every size without a proof of
-        jamming, one or more of its LCPs having given up, is taken again from its start with
+        Omega >= 0 either way.  A step that fails at every size without a proof of jamming,
+        one or more of its LCPs having given up, is taken again from its start with
         the last-resort budget (LCP_SOLVES_LAST solves, SINGULAR_LAST singular sets; counted
         in ``last_resorts``) before :class:`LCPGaveUp` ends the run."""
         if direction not in (1, -1):
