@@ -338,6 +338,22 @@ def _restart_scene_of(path: str) -> tuple:
         return run.scene_text, run.settings
 
 
+class _SampleFormatter(logging.Formatter):
+    """"[parflow] sample k: ..." for a sample's lines; the job's own progress line (logged
+    with ``ensemble_line``, from world rank 0's progress thread while its sample runs) as
+    "[parflow] ..."."""
+
+    def __init__(self, k: int):
+        super().__init__("[parflow] %(message)s")
+        self.k = k
+
+    def format(self, record):
+        line = super().format(record)
+        if getattr(record, "ensemble_line", False):
+            return line
+        return line.replace("[parflow] ", f"[parflow] sample {self.k}: ", 1)
+
+
 class sample_log:
     """While sample k runs: its group leader's log lines on stderr, each marked "sample k:".
 
@@ -354,7 +370,7 @@ class sample_log:
         if self.on:
             self.saved = (list(log.handlers), log.level)
             h = logging.StreamHandler(sys.stderr)
-            h.setFormatter(logging.Formatter(f"[parflow] sample {self.k}: %(message)s"))
+            h.setFormatter(_SampleFormatter(self.k))
             log.handlers[:] = [h]
             log.setLevel(logging.INFO)
         return self
@@ -433,7 +449,7 @@ class _Progress(threading.Thread):
 
     def run(self):
         while not self.stop.wait(self.seconds):
-            log.info("%s", self.line())
+            log.info("%s", self.line(), extra={"ensemble_line": True})
 
 
 def run_ensemble(base: dict, folder: str, samples: int, rps: int, *, restart: bool,

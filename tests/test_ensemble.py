@@ -202,6 +202,19 @@ def test_every_group_logs_its_sample(tmp_path):
     assert not any("sample" not in ln and " steps, " in ln for ln in lines), res.stderr
 
 
+def test_sample_lines_marked_and_the_job_line_not():
+    """While a sample runs, its lines are marked "sample k:"; the job's progress line, which
+    world rank 0's thread logs meanwhile (with ensemble_line), is not."""
+    import logging
+    from parflow.ensemble import _SampleFormatter
+    fmt = _SampleFormatter(3)
+    rec = logging.LogRecord("parflow", logging.INFO, __file__, 1, "step %d", (7,), None)
+    assert fmt.format(rec) == "[parflow] sample 3: step 7"
+    job = logging.LogRecord("parflow", logging.INFO, __file__, 1, "%s", ("ensemble: 1/2",), None)
+    job.ensemble_line = True
+    assert fmt.format(job) == "[parflow] ensemble: 1/2"
+
+
 @serial_only
 def test_groups_of_two_ranks(serial, tmp_path):
     """ranks_per_sample = 2 on 2 ranks: one group, each sample on both ranks; the same samples
