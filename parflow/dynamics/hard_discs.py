@@ -263,29 +263,27 @@ class Suspension:
     def probe(self, direction: int = 1):
         """Contact forces at the current configuration for the step the stepper would take
         next, without moving: (candidates, f, V_na, dg).  An LCP that fails gets a smaller
-        step, as in :meth:`step` (the first row of a run, and what analyses look at)."""
+        step, as in :meth:`step`, and the last-resort budget as there (the first row of a run,
+        also on a restart, and what analyses look at)."""
+        return self._with_last_resort(self._probe, direction)
+
+    def _probe(self, direction: int):
+        """The probe of :meth:`probe`, at the present LCP budget."""
         st = self.state
         c = find_candidates(st.s, st.radii, st.h, st.E, self.skin)
         dg0 = dg = self.next_dgamma()
-        try:
-            while True:
-                try:
-                    _, _, f, V, _, _ = self.forces(c, dg, direction)
-                    return c, f, V, dg
-                except LCPFailure as exc:
-                    dg *= 0.1
-                    if dg >= self.dg_min:
-                        continue
-                    if self._last_resort:
-                        raise LCPGaveUp(
-                            f"suspension: the contact LCP failed at gamma = {st.gamma:.10g} "
-                            f"for every step from {dg0:.3g} down to dg_min = {self.dg_min:g} "
-                            f"(with the last-resort budget too; last: {exc}): a solver "
-                            f"failure") from None
-                    self.last_resorts += 1      # as in step(): once more, the larger budget
-                    self._last_resort, dg = True, dg0
-        finally:
-            self._last_resort = False
+        while True:
+            try:
+                _, _, f, V, _, _ = self.forces(c, dg, direction)
+                return c, f, V, dg
+            except LCPFailure as exc:
+                dg *= 0.1
+                if dg < self.dg_min:
+                    raise LCPGaveUp(
+                        f"suspension: the contact LCP failed at gamma = {st.gamma:.10g} for "
+                        f"every step from {dg0:.3g} down to dg_min = {self.dg_min:g}"
+                        f"{self._budget_note} "
+                        f"(last: {exc}): a solver failure") from None
 
     def step(self, direction: int = 1, cap: float | None = None) -> StepStats:
         """One step of strain magnitude dg (chosen here, at most ``cap``) in ``direction``
@@ -297,13 +295,23 @@ class Suspension:
         in ``last_resorts``) before :class:`LCPGaveUp` ends the run."""
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction!r}")
+        return self._with_last_resort(self._step, direction, cap)
+
+    @property
+    def _budget_note(self) -> str:
+        """What a failure message adds when the last-resort budget was in use."""
+        return " (with the last-resort budget too)" if self._last_resort else ""
+
+    def _with_last_resort(self, attempt, *args):
+        """``attempt(*args)``; if it raises :class:`LCPGaveUp`, once more with the
+        last-resort LCP budget (counted in ``last_resorts``)."""
         try:
-            return self._step(direction, cap)
+            return attempt(*args)
         except LCPGaveUp:
             self.last_resorts += 1
             self._last_resort = True
             try:
-                return self._step(direction, cap)
+                return attempt(*args)
             finally:
                 self._last_resort = False
 
@@ -481,7 +489,6 @@ class Suspension:
 
     def _failed(self, cert, tried: list, why: str):
         """No step was accepted and jamming is not proved: a solver failure."""
-        last = " (with the last-resort budget too)" if self._last_resort else ""
         # the last-resort budget can only help where an LCP gave up: where every try was
         # solved and rejected (w < 0: overlap), more solves change nothing
         raise (LCPGaveUp if self._gave_up else ContactSolveError)(
@@ -490,7 +497,7 @@ class Suspension:
             f"proved infeasible for every step (LP at dg = {cert.dg:.3g}: certified = "
             f"{cert.certified}, min tau.q = {cert.tau_q:.3g}, tau.b = {cert.tau_b:.3g}, "
             f"v_bound = {cert.v_bound:.3g} vs {cert.v_admissible:.3g}; {cert.lp_status}): a "
-            f"solver failure{last}, not shear jamming")
+            f"solver failure{self._budget_note}, not shear jamming")
 
     def run(self, strain: float, max_steps: int = 10**7, callback=None) -> list[StepStats]:
         """Step forward until ``strain`` more strain has been applied (the last step capped

@@ -32,9 +32,10 @@ def phi_sj_figure(res: dict) -> Figure:
     for k, rate in enumerate(rates):
         rows = [t for t in res["table"] if t["compress_rate"] == rate]
         color = f"C{k}"
+        shift = 1 + 0.03 * (k - 0.5 * (len(rates) - 1))   # the rates' samples side by side
         for r in res["records"]:
             if r["compress_rate"] == rate and r["shear_jam"]:
-                ax.plot(r["N"] * (1 + 0.03 * (k - 0.5 * (len(rates) - 1))), r["phi"],
+                ax.plot(r["N"] * shift, r["phi"],
                         "o", ms=3.5, zorder=1,
                         color="0.6" if not r["constant_phi"] else "none",
                         markeredgecolor="0.5")
@@ -42,7 +43,7 @@ def phi_sj_figure(res: dict) -> Figure:
               if r["compress_rate"] == rate and r["status"] in FLOWING and not r["shear_jam"]]
         if up:
             x, y = np.array(up, float).T
-            ax.plot(x * (1 + 0.03 * (k - 0.5 * (len(rates) - 1))), y, "^", ms=5, zorder=2,
+            ax.plot(x * shift, y, "^", ms=5, zorder=2,
                     color="none", markeredgecolor=color,
                     label=f"still flowing at the end (a lower bound), {len(up)}")
         rows = [t for t in rows if t["n_shear_jams"]]
