@@ -22,15 +22,15 @@ name = "suspension"
 N = {N}
 phi = 0.820
 compress_rate = {rate}
-compress_to = 0.8429
+compress_to = {to}
 """
 
 
-def run_file(path, N, status, phi_ts, jam=None, rate=0.01, seed=1):
+def run_file(path, N, status, phi_ts, jam=None, rate=0.01, seed=1, to=0.8429):
     """A minimal suspension run file: the attributes, phi and gamma columns, and /jam."""
     with h5py.File(path, "w") as f:
         f.attrs.update(format="parflow-run-1", model="suspension", status=status,
-                       scene=SCENE.format(N=N, rate=rate), sample_seed=seed,
+                       scene=SCENE.format(N=N, rate=rate, to=to), sample_seed=seed,
                        git_commit="abc123")
         g = f.create_group("timeseries")
         g["phi"] = np.asarray(phi_ts, float)
@@ -41,13 +41,13 @@ def run_file(path, N, status, phi_ts, jam=None, rate=0.01, seed=1):
                            strain_budget=1e-12, **jam)
 
 
-def ensemble(folder, N, samples, rate=0.01):
+def ensemble(folder, N, samples, rate=0.01, to=0.8429, seed0=0):
     os.makedirs(folder)
     with h5py.File(os.path.join(folder, "ensemble.h5"), "w"):
         pass
     for k, (status, phi_ts, jam) in enumerate(samples):
         run_file(os.path.join(folder, f"sample_{k:04d}.h5"), N, status, phi_ts, jam, rate,
-                 seed=100 * N + k)
+                 seed=100 * N + seed0 + k, to=to)
 
 
 @pytest.fixture
@@ -169,3 +169,24 @@ def test_stopped_samples_are_lower_bounds(folders):
     ax = phi_sj_figure(res).axes[0]
     up = [ln for ln in ax.lines if ln.get_marker() == "^"]
     assert len(up) == 1 and sorted(up[0].get_ydata()) == [0.8415, 0.8416, 0.8429]  # + N = 1024 complete
+
+
+def test_a_start_compressed_further_supersedes_its_capped_run(folders):
+    """The same start (rate, N, sample seed) run with a smaller compress_to is a truncation
+    of the sample compressed further: left out of the means, the fit and the figure, and
+    counted; a capped run of another start stays in."""
+    before = sj.analyse([str(folders)])
+    ensemble(folders / "jams_N2048_capped", 2048, [
+        ("jammed", [0.82, 0.840], dict()),                  # seed of jams_N2048 sample 0
+        ("jammed", [0.82, 0.8398], dict(phi=0.8398, tau_b_shear=-30.0))], to=0.840)
+    ensemble(folders / "jams_N2048_other", 2048, [
+        ("jammed", [0.82, 0.840], dict())], to=0.840, seed0=7)   # another start: kept
+    res = sj.analyse([str(folders)])
+    rows = {(t["compress_rate"], t["N"]): t for t in res["table"]}
+    t = rows[(0.01, 2048)]
+    assert t["superseded"] == 2 and t["n_samples"] == 3
+    assert sorted(t["phi_values"]) == [0.8400, 0.8405, 0.8411]
+    assert rows[(0.01, 1024)]["superseded"] == 0
+    assert rows[(0.01, 4096)]["phi_values"] == [0.8412, 0.8414]
+    assert len(res["records"]) == len(before["records"]) + 1
+    assert any("2 sample(s) left out" in ln for ln in sj.format_table(res))

@@ -12,7 +12,9 @@ sample that did not jam, the phi it reached.
 
 Per N (:func:`analyse`, samples grouped by N and compression rate): the phi of the shear
 jams -- mean, standard deviation, standard error (ddof = 1), count -- and the samples that
-did not shear-jam.  Across N, for one rate: the finite-size form of the jamming point of
+did not shear-jam.  A sample whose start (rate, N, sample seed) another ensemble compressed
+further (a larger ``compress_to``) is left out and counted (``superseded``): capped at its
+``compress_to``, it is a truncation of that sample, not an independent one.  Across N, for one rate: the finite-size form of the jamming point of
 packings (O'Hern et al. 2003: phi*(N) - phi_J ~ N^(-1/(d nu)) with 1/(d nu) = 0.71 in 2D
 and 3D)
 
@@ -195,13 +197,34 @@ def fit_fss_free(Ns, mean, sem) -> dict:
     return out
 
 
+def _superseded(recs: list) -> set:
+    """Indices of records whose start (the same rate, N and sample seed) was also compressed
+    further in another ensemble (a larger ``compress_to``): the run that stopped compressing
+    earlier is a truncation of the same sample, not an independent one, and its phi is
+    capped by its ``compress_to``.  Of records with the same start and ``compress_to``,
+    none is superseded (they are repeats: read_sources keeps each source's own)."""
+    best: dict = {}
+    for r in recs:
+        key = (r["compress_rate"], r["N"], r["seed"])
+        ct = r["compress_to"] if math.isfinite(r["compress_to"]) else -math.inf
+        best[key] = max(best.get(key, -math.inf), ct)
+    out = set()
+    for k, r in enumerate(recs):
+        ct = r["compress_to"] if math.isfinite(r["compress_to"]) else -math.inf
+        if r["seed"] >= 0 and ct < best[(r["compress_rate"], r["N"], r["seed"])]:
+            out.add(k)
+    return out
+
+
 def analyse(paths) -> dict:
     """Per (compression rate, N): the phi of the shear jams and the samples that did not
     shear-jam; per rate, the fit across N (:func:`fit_fss`).  ``table``: one row per group."""
     recs = [r for r in read_sources(paths) if r["compress_rate"] > 0]
+    superseded = _superseded(recs)
     groups: dict = {}
-    for r in recs:
-        groups.setdefault((r["compress_rate"], r["N"]), []).append(r)
+    for k, r in enumerate(recs):
+        if k not in superseded:
+            groups.setdefault((r["compress_rate"], r["N"]), []).append(r)
     table = []
     for (rate, N), rs in sorted(groups.items()):
         phis = np.array([r["phi"] for r in rs if r["shear_jam"]], float)
@@ -213,14 +236,18 @@ def analyse(paths) -> dict:
                           not_shear_jammed=[dict(sample=r["sample"], status=r["status"],
                                                  phi=r["phi"]) for r in rs
                                             if not r["shear_jam"]],
-                          sources=sorted({r["source"] for r in rs})))
+                          sources=sorted({r["source"] for r in rs}),
+                          superseded=sum(1 for k in superseded
+                                         if (recs[k]["compress_rate"], recs[k]["N"]) ==
+                                         (rate, N))))
     fits, free = {}, {}
     for rate in sorted({t["compress_rate"] for t in table}):
         rows = [t for t in table if t["compress_rate"] == rate]
         args = ([t["N"] for t in rows], [t["phi_mean"] for t in rows],
                 [t["phi_sem"] for t in rows])
         fits[rate], free[rate] = fit_fss(*args), fit_fss_free(*args)
-    return dict(table=table, fits=fits, fits_free=free, records=recs)
+    return dict(table=table, fits=fits, fits_free=free,
+                records=[r for k, r in enumerate(recs) if k not in superseded])
 
 
 def format_table(res: dict) -> list[str]:
@@ -233,6 +260,10 @@ def format_table(res: dict) -> list[str]:
                 if t["n_shear_jams"] else f"{'-':<24s}")
         out.append(f"{t['compress_rate']:>13g} {t['N']:>6d} {t['n_samples']:>8d} "
                    f"{t['n_shear_jams']:>11d}  {mean}        {nj}")
+    sup = sum(t.get("superseded", 0) for t in res["table"])
+    if sup:
+        out.append(f"({sup} sample(s) left out: the same start compressed further, to a larger "
+                   f"compress_to, in another ensemble)")
     for rate, f in res["fits"].items():
         if math.isnan(f["phi_inf"]):
             out.append(f"rate {rate:g}: {f['n_sizes']} sizes with an error: no fit across N "
