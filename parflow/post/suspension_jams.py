@@ -14,9 +14,9 @@ Per N (:func:`analyse`, samples grouped by N and compression rate): the phi of t
 jams -- mean, standard deviation, standard error (ddof = 1), count -- and the samples that
 did not shear-jam.  A sample whose start (rate, N, sample seed) another ensemble compressed
 further (a larger ``compress_to``) is left out and counted (``superseded``): capped at its
-``compress_to``, it is a truncation of that sample, not an independent one.  Across N, for one rate: the finite-size form of the jamming point of
-packings (O'Hern et al. 2003: phi*(N) - phi_J ~ N^(-1/(d nu)) with 1/(d nu) = 0.71 in 2D
-and 3D)
+``compress_to``, it is a truncation of that sample, not an independent one.  Across N, for
+one rate: the finite-size form of the jamming point of packings (O'Hern et al. 2003:
+phi*(N) - phi_J ~ N^(-1/(d nu)) with 1/(d nu) = 0.71 in 2D and 3D)
 
     phi_SJ(N) = phi_inf - a N^(-X_FSS),  X_FSS = 0.71 fixed,
 
@@ -246,7 +246,7 @@ def analyse(paths) -> dict:
         args = ([t["N"] for t in rows], [t["phi_mean"] for t in rows],
                 [t["phi_sem"] for t in rows])
         fits[rate], free[rate] = fit_fss(*args), fit_fss_free(*args)
-    return dict(table=table, fits=fits, fits_free=free,
+    return dict(table=table, fits=fits, fits_free=free, n_superseded=len(superseded),
                 records=[r for k, r in enumerate(recs) if k not in superseded])
 
 
@@ -260,7 +260,7 @@ def format_table(res: dict) -> list[str]:
                 if t["n_shear_jams"] else f"{'-':<24s}")
         out.append(f"{t['compress_rate']:>13g} {t['N']:>6d} {t['n_samples']:>8d} "
                    f"{t['n_shear_jams']:>11d}  {mean}        {nj}")
-    sup = sum(t.get("superseded", 0) for t in res["table"])
+    sup = res.get("n_superseded", 0)
     if sup:
         out.append(f"({sup} sample(s) left out: the same start compressed further, to a larger "
                    f"compress_to, in another ensemble)")
