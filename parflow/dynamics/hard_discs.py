@@ -166,7 +166,7 @@ class Suspension:
         self.infeasible_reductions = 0
         self.upward_searches = 0       # steps that searched above their first size
         self.last_resorts = 0          # steps taken again with the last-resort LCP budget
-        self._last_resort = self._gave_up = False
+        self._last_resort = False
         self.omega = state.volume
         # compression while shearing: the discs swell, R_i = R0_i sqrt(phi / phi0), so that
         # phi grows by compress_rate per unit strain applied until it reaches compress_to
@@ -327,7 +327,7 @@ class Suspension:
         dg = self.next_dgamma(cap)
         sig_max = 2.0 * float(st.radii.max())
         tried, why, upward, cert = [], "", None, None
-        self._gave_up = False           # an LCP of this step gave up (LCPFailure)
+        gave_up = False                 # an LCP of this step gave up (LCPFailure)
         while True:
             try:
                 S, q, f, V, info, warm = self.forces(c, dg, direction,
@@ -352,7 +352,7 @@ class Suspension:
                            f"at dg = {dg:.3g}")
             except LCPFailure as exc:
                 feasible, vmax, why = False, math.inf, f"{exc} at dg = {dg:.3g}"
-                self._gave_up = True
+                gave_up = True
             if feasible:
                 vmax = float(np.sqrt(np.einsum("id,id->i", V, V).max()))
                 swell = 2.0 * self._swell(dg) * float(self.radii0.max())
@@ -366,7 +366,7 @@ class Suspension:
                 if feasible:                # (the displacement bounds: larger won't do)
                     upward = []
                 if not upward:
-                    self._jam_or_fail(cert, c, direction, tried, why)
+                    self._jam_or_fail(cert, c, direction, tried, why, gave_up)
                 dg = upward.pop(0)
                 continue
             dg *= 0.5 if feasible else RETRY_FACTOR
@@ -386,7 +386,7 @@ class Suspension:
                 upward = self._larger_steps(tried, cert, cap)
                 self.upward_searches += 1
                 if not upward:
-                    self._jam_or_fail(cert, c, direction, tried, why)
+                    self._jam_or_fail(cert, c, direction, tried, why, gave_up)
                 dg = upward.pop(0)
         t2 = time.perf_counter()
         h_new = cell_at(st.h0, st.E, st.gamma + direction * dg)
@@ -415,7 +415,8 @@ class Suspension:
         self.last_f, self.last_c, self.last_V = f, c, V
         return stats
 
-    def _jam_or_fail(self, cert, c: Candidates, direction: int, tried: list, why: str):
+    def _jam_or_fail(self, cert, c: Candidates, direction: int, tried: list, why: str,
+                     gave_up: bool):
         """No step was accepted and the smallest one is not proved infeasible.  If the LP at
         the largest step tried proves a compressed self-stress the flow compresses (tau.b <
         0) whose strain budget -- the strain left before the stressed cluster's gaps close
@@ -426,7 +427,7 @@ class Suspension:
         big = cert if cert.dg == max(tried) else self._certify(c, direction, tried, max(tried))
         if big.certified and big.tau_b < 0 and big.strain_budget <= JAM_BUDGET:
             self._jammed(big, c, tried)
-        self._failed(cert, tried, why)
+        self._failed(cert, tried, why, gave_up)
 
     def _certify(self, c: Candidates, direction: int, tried: list, dg: float | None = None):
         """The LP certificate (``dynamics.jamming``) at step ``dg`` (default: the smallest
@@ -487,11 +488,12 @@ class Suspension:
             f"dg = {cert.dg:.3g}, strain budget {cert.strain_budget:.3g}); stress is infinite "
             f"at this N", certificate=rec, tau=cert.tau[P], pairs=(c.i[P], c.j[P]))
 
-    def _failed(self, cert, tried: list, why: str):
-        """No step was accepted and jamming is not proved: a solver failure."""
+    def _failed(self, cert, tried: list, why: str, gave_up: bool):
+        """No step was accepted and jamming is not proved: a solver failure (LCPGaveUp if an
+        LCP of the step, ``gave_up``, gave up)."""
         # the last-resort budget can only help where an LCP gave up: where every try was
         # solved and rejected (w < 0: overlap), more solves change nothing
-        raise (LCPGaveUp if self._gave_up else ContactSolveError)(
+        raise (LCPGaveUp if gave_up else ContactSolveError)(
             f"suspension: the contact LCP failed at gamma = {self.state.gamma:.10g} for every "
             f"step tried ({', '.join(f'{d:.3g}' for d in tried)}; last: {why}), but it is not "
             f"proved infeasible for every step (LP at dg = {cert.dg:.3g}: certified = "

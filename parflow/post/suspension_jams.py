@@ -203,17 +203,16 @@ def _superseded(recs: list) -> set:
     earlier is a truncation of the same sample, not an independent one, and its phi is
     capped by its ``compress_to``.  Of records with the same start and ``compress_to``,
     none is superseded (they are repeats: read_sources keeps each source's own)."""
+    def start(r):
+        return r["compress_rate"], r["N"], r["seed"]
+
+    def to(r):
+        return r["compress_to"] if math.isfinite(r["compress_to"]) else -math.inf
+
     best: dict = {}
     for r in recs:
-        key = (r["compress_rate"], r["N"], r["seed"])
-        ct = r["compress_to"] if math.isfinite(r["compress_to"]) else -math.inf
-        best[key] = max(best.get(key, -math.inf), ct)
-    out = set()
-    for k, r in enumerate(recs):
-        ct = r["compress_to"] if math.isfinite(r["compress_to"]) else -math.inf
-        if r["seed"] >= 0 and ct < best[(r["compress_rate"], r["N"], r["seed"])]:
-            out.add(k)
-    return out
+        best[start(r)] = max(best.get(start(r), -math.inf), to(r))
+    return {k for k, r in enumerate(recs) if r["seed"] >= 0 and to(r) < best[start(r)]}
 
 
 def analyse(paths) -> dict:
@@ -221,10 +220,14 @@ def analyse(paths) -> dict:
     shear-jam; per rate, the fit across N (:func:`fit_fss`).  ``table``: one row per group."""
     recs = [r for r in read_sources(paths) if r["compress_rate"] > 0]
     superseded = _superseded(recs)
-    groups: dict = {}
+    groups, dropped, kept = {}, {}, []
     for k, r in enumerate(recs):
-        if k not in superseded:
-            groups.setdefault((r["compress_rate"], r["N"]), []).append(r)
+        g = (r["compress_rate"], r["N"])
+        if k in superseded:
+            dropped[g] = dropped.get(g, 0) + 1
+        else:
+            groups.setdefault(g, []).append(r)
+            kept.append(r)
     table = []
     for (rate, N), rs in sorted(groups.items()):
         phis = np.array([r["phi"] for r in rs if r["shear_jam"]], float)
@@ -237,9 +240,7 @@ def analyse(paths) -> dict:
                                                  phi=r["phi"]) for r in rs
                                             if not r["shear_jam"]],
                           sources=sorted({r["source"] for r in rs}),
-                          superseded=sum(1 for k in superseded
-                                         if (recs[k]["compress_rate"], recs[k]["N"]) ==
-                                         (rate, N))))
+                          superseded=dropped.get((rate, N), 0)))
     fits, free = {}, {}
     for rate in sorted({t["compress_rate"] for t in table}):
         rows = [t for t in table if t["compress_rate"] == rate]
@@ -247,7 +248,7 @@ def analyse(paths) -> dict:
                 [t["phi_sem"] for t in rows])
         fits[rate], free[rate] = fit_fss(*args), fit_fss_free(*args)
     return dict(table=table, fits=fits, fits_free=free, n_superseded=len(superseded),
-                records=[r for k, r in enumerate(recs) if k not in superseded])
+                records=kept)
 
 
 def format_table(res: dict) -> list[str]:
