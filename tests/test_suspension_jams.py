@@ -190,3 +190,28 @@ def test_a_start_compressed_further_supersedes_its_capped_run(folders):
     assert rows[(0.01, 4096)]["phi_values"] == [0.8412, 0.8414]
     assert len(res["records"]) == len(before["records"]) + 1
     assert any("2 sample(s) left out" in ln for ln in sj.format_table(res))
+
+
+def test_rate_figure_with_a_second_rate(folders):
+    """With one rate there is no figure against the rate; with a second one it draws one
+    mean per (N, rate), joined across the rates of each N, at the groups' means."""
+    from parflow.plot.suspension_jams import _figures, phi_sj_rate_figure
+    assert [name for name, _ in _figures(sj.analyse([str(folders)]))] == \
+        ["suspension_jams_phiSJ"]
+    ensemble(folders / "jams_N1024_fast", 1024, [
+        ("jammed", [0.82, 0.8401], dict(phi=0.8401, tau_b_shear=-40.0)),
+        ("jammed", [0.82, 0.8409], dict(phi=0.8409, tau_b_shear=-41.0))], rate=0.04)
+    res = sj.analyse([str(folders)])
+    assert [name for name, _ in _figures(res)] == \
+        ["suspension_jams_phiSJ", "suspension_jams_rate"]
+    ax = phi_sj_rate_figure(res).axes[0]
+    means = [ln for ln in ax.lines if ln.get_marker() == "s"]
+    assert len(means) == 3                                  # N = 1024, 2048, 4096
+    n1024 = [ln for ln in means if len(ln.get_xdata()) == 2]
+    assert len(n1024) == 1
+    y = n1024[0].get_ydata()
+    rows = {(t["compress_rate"], t["N"]): t["phi_mean"] for t in res["table"]}
+    assert y[0] == pytest.approx(0.5 * (0.8381 + 0.8429)) == rows[(0.01, 1024)]
+    assert y[1] == pytest.approx(0.8405) == rows[(0.04, 1024)]
+    x = n1024[0].get_xdata()
+    assert x[1] / x[0] == pytest.approx(4.0)

@@ -9,6 +9,8 @@
   reaching ``compress_to``) are drawn as open circles; samples that ended or were stopped
   still flowing, as triangles pointing up at the phi they reached (a lower bound of their
   jam; not in the means or the fits).
+* ``suspension_jams_rate`` (with two rates or more): the same jams against the compression
+  rate, one colour per N.
 
 ``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
 ``python -m parflow.post.suspension_jams``).
@@ -78,13 +80,54 @@ def phi_sj_figure(res: dict) -> Figure:
     return fig
 
 
+def phi_sj_rate_figure(res: dict) -> Figure:
+    """phi_SJ against the compression rate, one colour per N: each sample's jam (grey; open
+    if at constant phi), the mean with its standard error joined across rates."""
+    fig = new_figure(6.4, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    sizes = sorted({t["N"] for t in res["table"] if t["n_shear_jams"]})
+    for k, N in enumerate(sizes):
+        color = f"C{k}"
+        shift = 1 + 0.04 * (k - 0.5 * (len(sizes) - 1))   # the sizes' samples side by side
+        for r in res["records"]:
+            if r["N"] == N and r["shear_jam"]:
+                ax.plot(r["compress_rate"] * shift, r["phi"], "o", ms=3.5, zorder=1,
+                        color="0.6" if not r["constant_phi"] else "none",
+                        markeredgecolor="0.5")
+        rows = sorted((t for t in res["table"] if t["N"] == N and t["n_shear_jams"]),
+                      key=lambda t: t["compress_rate"])
+        x = np.array([t["compress_rate"] for t in rows], float) * shift
+        m = np.array([t["phi_mean"] for t in rows], float)
+        e = np.array([t["phi_sem"] for t in rows], float)
+        ax.errorbar(x, m, yerr=np.nan_to_num(e), fmt="s-", color=color, ms=6, capsize=3,
+                    lw=1, zorder=3, label=f"N = {N}: mean ± s.e. "
+                    f"({', '.join(str(t['n_shear_jams']) for t in rows)} jams)")
+    ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
+    ax.set_xscale("log")
+    ax.set_xlabel("compression rate dφ/dγ")
+    ax.set_ylabel("φ at the shear jam")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("Where a flowing suspension shear-jams, against the compression rate\n"
+                 "(grey: one sample each; open: jammed at constant φ, after compress_to)",
+                 fontsize=8.5)
+    return fig
+
+
+def _figures(res: dict) -> list:
+    out = [("suspension_jams_phiSJ", phi_sj_figure(res))]
+    if len({t["compress_rate"] for t in res["table"] if t["n_shear_jams"]}) > 1:
+        out.append(("suspension_jams_rate", phi_sj_rate_figure(res)))
+    return out
+
+
 def main(argv=None) -> int:
     return across_ensembles_cli(
         argv, "python -m parflow.plot.suspension_jams",
         "The figure of phi_SJ(N): where compressed, flowing suspensions shear-jam (PATH: "
         "ensemble folders, jam tables, or folders holding them)", analyse, format_table,
         "no compressed suspension ensemble sample found",
-        lambda res: [("suspension_jams_phiSJ", phi_sj_figure(res))])
+        _figures)
 
 
 if __name__ == "__main__":
