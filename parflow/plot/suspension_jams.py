@@ -27,6 +27,25 @@ from ..post.suspension_jams import FLOWING, PHI_J, analyse, format_table
 from .base import across_ensembles_cli, new_figure
 
 
+def _samples(ax, records, x_of) -> None:
+    """Each shear jam among ``records`` at (x_of(record), its phi): grey, open if it came at
+    constant phi."""
+    for r in records:
+        if r["shear_jam"]:
+            ax.plot(x_of(r), r["phi"], "o", ms=3.5, zorder=1,
+                    color="0.6" if not r["constant_phi"] else "none", markeredgecolor="0.5")
+
+
+def _finish(ax, xlabel: str, title: str) -> None:
+    ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
+    ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("φ at the shear jam")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(title, fontsize=8.5)
+
+
 def phi_sj_figure(res: dict) -> Figure:
     fig = new_figure(6.4, 4.6)
     ax = fig.add_subplot(1, 1, 1)
@@ -35,12 +54,8 @@ def phi_sj_figure(res: dict) -> Figure:
         rows = [t for t in res["table"] if t["compress_rate"] == rate]
         color = f"C{k}"
         shift = 1 + 0.03 * (k - 0.5 * (len(rates) - 1))   # the rates' samples side by side
-        for r in res["records"]:
-            if r["compress_rate"] == rate and r["shear_jam"]:
-                ax.plot(r["N"] * shift, r["phi"],
-                        "o", ms=3.5, zorder=1,
-                        color="0.6" if not r["constant_phi"] else "none",
-                        markeredgecolor="0.5")
+        _samples(ax, [r for r in res["records"] if r["compress_rate"] == rate],
+                 lambda r: r["N"] * shift)
         up = [(r["N"], r["phi"]) for r in res["records"]
               if r["compress_rate"] == rate and r["status"] in FLOWING and not r["shear_jam"]]
         if up:
@@ -67,16 +82,10 @@ def phi_sj_figure(res: dict) -> Figure:
             ax.plot(n, g["phi_inf"] - g["a"] * n ** -g["x"], ":", color=color, lw=1.2,
                     label=f"exponent free: N^−{g['x']:.2f}, φ_∞ = {g['phi_inf']:.4f} "
                           f"({g['phi_inf_range'][0]:.4f}–{g['phi_inf_range'][1]:.4f})")
-    ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
-    ax.set_xscale("log")
-    ax.set_xlabel("N")
-    ax.set_ylabel("φ at the shear jam")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
     n = sum(t["n_samples"] for t in res["table"])
-    ax.set_title(f"Where a flowing suspension shear-jams while compressed: {n} samples\n"
-                 "(grey: one each; open: jammed at constant φ, after compress_to; "
-                 "▵: still flowing)", fontsize=8.5)
+    _finish(ax, "N", f"Where a flowing suspension shear-jams while compressed: {n} samples\n"
+                     "(grey: one each; open: jammed at constant φ, after compress_to; "
+                     "▵: still flowing)")
     return fig
 
 
@@ -89,11 +98,8 @@ def phi_sj_rate_figure(res: dict) -> Figure:
     for k, N in enumerate(sizes):
         color = f"C{k}"
         shift = 1 + 0.04 * (k - 0.5 * (len(sizes) - 1))   # the sizes' samples side by side
-        for r in res["records"]:
-            if r["N"] == N and r["shear_jam"]:
-                ax.plot(r["compress_rate"] * shift, r["phi"], "o", ms=3.5, zorder=1,
-                        color="0.6" if not r["constant_phi"] else "none",
-                        markeredgecolor="0.5")
+        _samples(ax, [r for r in res["records"] if r["N"] == N],
+                 lambda r: r["compress_rate"] * shift)
         rows = sorted((t for t in res["table"] if t["N"] == N and t["n_shear_jams"]),
                       key=lambda t: t["compress_rate"])
         x = np.array([t["compress_rate"] for t in rows], float) * shift
@@ -102,15 +108,9 @@ def phi_sj_rate_figure(res: dict) -> Figure:
         ax.errorbar(x, m, yerr=np.nan_to_num(e), fmt="s-", color=color, ms=6, capsize=3,
                     lw=1, zorder=3, label=f"N = {N}: mean ± s.e. "
                     f"({', '.join(str(t['n_shear_jams']) for t in rows)} jams)")
-    ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
-    ax.set_xscale("log")
-    ax.set_xlabel("compression rate dφ/dγ")
-    ax.set_ylabel("φ at the shear jam")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
-    ax.set_title("Where a flowing suspension shear-jams, against the compression rate\n"
-                 "(grey: one sample each; open: jammed at constant φ, after compress_to)",
-                 fontsize=8.5)
+    _finish(ax, "compression rate dφ/dγ",
+            "Where a flowing suspension shear-jams, against the compression rate\n"
+            "(grey: one sample each; open: jammed at constant φ, after compress_to)")
     return fig
 
 
