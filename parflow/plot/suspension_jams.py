@@ -124,8 +124,9 @@ def _figures(res: dict) -> list:
 def main(argv=None) -> int:
     return across_ensembles_cli(
         argv, "python -m parflow.plot.suspension_jams",
-        "The figure of phi_SJ(N): where compressed, flowing suspensions shear-jam (PATH: "
-        "ensemble folders, jam tables, or folders holding them)", analyse, format_table,
+        "The figures of phi_SJ(N) and of phi_SJ against the rate: where compressed, flowing "
+        "suspensions shear-jam (PATH: ensemble folders, jam tables, or folders holding them)",
+        analyse, format_table,
         "no compressed suspension ensemble sample found",
         _figures)
 
