@@ -36,6 +36,16 @@ def _samples(ax, records, x_of) -> None:
                     color="0.6" if not r["constant_phi"] else "none", markeredgecolor="0.5")
 
 
+def _means(ax, rows, x, color: str, what: str, **style) -> None:
+    """The mean phi of the shear jams of each group (table row) in ``rows`` at ``x``, with
+    its standard error; the legend names ``what`` and the jams behind each mean."""
+    m = np.array([t["phi_mean"] for t in rows], float)
+    e = np.array([t["phi_sem"] for t in rows], float)
+    ax.errorbar(x, m, yerr=np.nan_to_num(e), color=color, ms=6, capsize=3, zorder=3,
+                label=f"{what}: mean ± s.e. "
+                      f"({', '.join(str(t['n_shear_jams']) for t in rows)} jams)", **style)
+
+
 def _finish(ax, xlabel: str, title: str) -> None:
     ax.axhline(PHI_J, color="k", ls="--", lw=0.8, label=f"φ_J = {PHI_J} (the mixture)")
     ax.set_xscale("log")
@@ -65,11 +75,7 @@ def phi_sj_figure(res: dict) -> Figure:
                     label=f"still flowing at the end (a lower bound), {len(up)}")
         rows = [t for t in rows if t["n_shear_jams"]]
         Ns = np.array([t["N"] for t in rows], float)
-        m = np.array([t["phi_mean"] for t in rows], float)
-        e = np.array([t["phi_sem"] for t in rows], float)
-        ax.errorbar(Ns, m, yerr=np.nan_to_num(e), fmt="s", color=color, ms=6, capsize=3,
-                    zorder=3, label=f"compressed at {rate:g} per unit strain: mean ± s.e. "
-                                    f"({', '.join(str(t['n_shear_jams']) for t in rows)} jams)")
+        _means(ax, rows, Ns, color, f"compressed at {rate:g} per unit strain", fmt="s")
         f = res["fits"].get(rate, {})
         if f and not math.isnan(f.get("phi_inf", math.nan)):
             n = np.geomspace(Ns.min() / 1.5, 1e6, 200)
@@ -103,11 +109,7 @@ def phi_sj_rate_figure(res: dict) -> Figure:
         rows = sorted((t for t in res["table"] if t["N"] == N and t["n_shear_jams"]),
                       key=lambda t: t["compress_rate"])
         x = np.array([t["compress_rate"] for t in rows], float) * shift
-        m = np.array([t["phi_mean"] for t in rows], float)
-        e = np.array([t["phi_sem"] for t in rows], float)
-        ax.errorbar(x, m, yerr=np.nan_to_num(e), fmt="s-", color=color, ms=6, capsize=3,
-                    lw=1, zorder=3, label=f"N = {N}: mean ± s.e. "
-                    f"({', '.join(str(t['n_shear_jams']) for t in rows)} jams)")
+        _means(ax, rows, x, color, f"N = {N}", fmt="s-", lw=1)
     _finish(ax, "compression rate dφ/dγ",
             "Where a flowing suspension shear-jams, against the compression rate\n"
             "(grey: one sample each; open: jammed at constant φ, after compress_to)")
