@@ -169,6 +169,7 @@ def test_stopped_samples_are_lower_bounds(folders):
     ax = phi_sj_figure(res).axes[0]
     up = [ln for ln in ax.lines if ln.get_marker() == "^"]
     assert len(up) == 1 and sorted(up[0].get_ydata()) == [0.8415, 0.8416, 0.8429]  # + N = 1024 complete
+    assert up[0].get_label() == "still flowing at 0.01 per unit strain (a lower bound), 3"
 
 
 def test_a_start_compressed_further_supersedes_its_capped_run(folders):

@@ -72,7 +72,8 @@ def phi_sj_figure(res: dict) -> Figure:
             x, y = np.array(up, float).T
             ax.plot(x * shift, y, "^", ms=5, zorder=2,
                     color="none", markeredgecolor=color,
-                    label=f"still flowing at the end (a lower bound), {len(up)}")
+                    label=f"still flowing at {rate:g} per unit strain (a lower bound), "
+                          f"{len(up)}")
         rows = [t for t in rows if t["n_shear_jams"]]
         Ns = np.array([t["N"] for t in rows], float)
         _means(ax, rows, Ns, color, f"compressed at {rate:g} per unit strain", fmt="s")
