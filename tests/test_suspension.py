@@ -430,6 +430,42 @@ def test_jam_proved_beyond_a_small_strain_budget():
     assert rec["dg"] > min(rec["dg_tried"]) and 0 < rec["strain_budget"] <= hd.JAM_BUDGET
 
 
+def test_closed_gaps_at_round_off_are_closed():
+    """A recorded N = 8192 state compressed in flow (tests/reference/creeping_state.npz: phi
+    = 0.8409, sigma = 50), from which a run crept on at steps of 1e-10 - 1e-9 for hours.
+    Its ~15 000 closed contacts sit at gaps within 4 eps ||h|| of zero, half of them
+    negative: taken as they are, each is a violation of w >= 0 of ~eps/dg that the pivoting
+    chases through singular active sets.  The step's LCP sees them as 0
+    (Suspension.gaps): at dg = 1e-8 it ends in a few solves, no singular set, w >= 0 to
+    round-off; with the raw gaps it meets singular sets or fails; and a step from the state
+    is accepted at the size the step control tries first."""
+    import json
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "creeping_state.npz"))
+    ck = {k: d[k] for k in d.files if k != "controls"}
+    ck["controls"] = json.loads(str(d["controls"]))
+    sim = hd.Suspension.restore(ck)
+    st = sim.state
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
+    tol = hd.GAP_ROUNDOFF * co.EPS * np.abs(st.h).sum(axis=1).max()
+    closed = np.abs(c.gap) <= tol
+    assert closed.sum() > 15000 and (c.gap[closed] < 0).sum() > 5000
+    g = sim.gaps(c)
+    assert np.all(g[closed] == 0.0) and np.array_equal(g[~closed], c.gap[~closed])
+    dg = 1e-8
+    S, q, f, V, info, warm = sim.forces(c, dg)
+    assert info.iterations <= 10 and info.singular == 0
+    assert info.min_w >= -co.FLOOR_FACTOR * info.floor and dg * max(0.0, -info.min_w) <= 1e-18
+    try:
+        _, raw = co.solve_lcp(S, q + (c.gap - g) / dg, warm)
+        assert raw.singular >= 1
+    except co.LCPFailure:
+        pass
+    n0, dg0 = sim.infeasible_reductions, sim.next_dgamma()
+    step = sim.step(1)
+    assert sim.infeasible_reductions == n0 and step.dgamma == dg0
+    assert sim.max_overlap <= 1e-12
+
+
 def test_shear_jammed_crystal_is_diagnosed():
     """A touching triangular crystal is over-constrained: the shear compresses its 120-degree
     bonds, the LCP has no overlap-free solution at any step size -> ShearJammed, no overlap."""

@@ -45,9 +45,19 @@ from ..geometry import Candidates, cell_at, find_candidates, rigidity_csr, veloc
 from ..observables import stress
 from ..state import State
 from .jamming import compressed_self_stress
-from .lcp import FACTORS, FLOOR_FACTOR, ContactSolveError, LCPFailure, LCPInfo, solve_lcp
+from .lcp import EPS, FACTORS, FLOOR_FACTOR, ContactSolveError, LCPFailure, LCPInfo, solve_lcp
 
 DEFAULT_SKIN = 0.3
+# a gap within GAP_ROUNDOFF eps ||h||_inf of zero (the round-off of positions in the cell h)
+# is a closed contact: the step's LCP and its certificate see it as exactly 0.  Measured at
+# phi = 0.8409, N = 8192 (||h|| = 108): the closed contacts' gaps reach 2.1 eps ||h|| (median
+# 0.2, 49 % negative).  Taken as they are, every closed contact at a gap of -eps was a
+# violation of w >= 0 of eps/dg that the pivoting chased through singular active sets
+# (43 solves, 12 of them singular, at dg = 1e-10), and every step from 1e-8 to 1e-6 failed
+# in the solver (the LP finding them feasible): that state crept on at 1e-10 a step for
+# hours.  With the closed gaps at 0 the same LCPs end in 1-4 solves up to dg = 1e-7, 17 at
+# 1e-6, and the state moves on at ~1e-6 a step
+GAP_ROUNDOFF = 4.0
 FIRST_DGAMMA = 1e-4
 # a step is at most this many times the last accepted one: after a step had to be cut
 # (an infeasible LCP, /10 per retry) the next ones grow back geometrically instead of
@@ -237,13 +247,18 @@ class Suspension:
         self.state.radii = swollen_radii(self.radii0, self.omega, self.phi)
         self.state.meta["phi"] = self.phi
 
+    def gaps(self, c: Candidates) -> np.ndarray:
+        """The candidates' gaps, those within the positions' round-off of zero (GAP_ROUNDOFF
+        eps ||h||_inf) set to 0: the gaps the step's LCP and its certificate use."""
+        tol = GAP_ROUNDOFF * EPS * float(np.abs(self.state.h).sum(axis=1).max())
+        return np.where(np.abs(c.gap) <= tol, 0.0, c.gap)
+
     def end_gaps(self, c: Candidates, dg: float) -> np.ndarray:
-        """The candidates' gaps with the radii at the end of a step ``dg`` (the gaps
-        themselves unless the discs swell)."""
+        """The candidates' gaps (:meth:`gaps`) with the radii at the end of a step ``dg``."""
         k = self._swell(dg)
         if k == 0.0:
-            return c.gap
-        return c.gap - k * (self.radii0[c.i] + self.radii0[c.j])
+            return self.gaps(c)
+        return self.gaps(c) - k * (self.radii0[c.i] + self.radii0[c.j])
 
     def forces(self, c: Candidates, dg: float, direction: int = 1, first: bool = False):
         """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
@@ -438,8 +453,9 @@ class Suspension:
         v_adm = math.sqrt(st.n) * min(2 * self.dmax, 0.5 * self.skin) / dg
         # swelling discs close every gap at the rate (R_i' + R_j' - R_i - R_j) / dg: part of
         # the affine closing rate b (q = b + h/dg as the LCP's)
-        b = direction * c.b - (c.gap - self.end_gaps(c, dg)) / dg
-        cert = compressed_self_stress(S, b, c.gap, dg, v_adm)
+        gap = self.gaps(c)
+        b = direction * c.b - (gap - self.end_gaps(c, dg)) / dg
+        cert = compressed_self_stress(S, b, gap, dg, v_adm)
         cert.rec = dict(cert.record(), gamma=float(st.gamma), direction=int(direction),
                         dg_min=float(self.dg_min), n_candidates=len(c))
         if self.compressing:
