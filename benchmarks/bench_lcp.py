@@ -17,6 +17,11 @@ solves, factorisations, and the largest difference of V = S^T f from the recorde
     python benchmarks/bench_lcp.py --budget RUN --steps 600
         # the first tries' LCP budget (150 solves) against 600 on every try, stepping on
         # from RUN's checkpoint; writes docs/benchmarks/lcp_budget.json
+    python benchmarks/bench_lcp.py --closed-gaps [--seconds 120]
+        # closed contacts at round-off gaps taken as they are against closed exactly
+        # (hard_discs.GAP_ROUNDOFF), on the recorded creeping N = 8192 state
+        # (tests/reference/creeping_state.npz): its LCP at steps 1e-10 - 1e-6, then stepping
+        # on for --seconds each; writes docs/benchmarks/lcp_closed_gaps.json
 """
 from __future__ import annotations
 
@@ -242,6 +247,92 @@ def budget(run: str, steps: int) -> int:
     return 0
 
 
+CREEPING_STATE = os.path.join(ROOT, "tests", "reference", "creeping_state.npz")
+
+
+def _restore(path: str):
+    """The suspension stepper restored from a checkpoint saved as .npz (tests/reference)."""
+    import json
+
+    import parflow.dynamics.hard_discs as su
+
+    d = np.load(path)
+    ck = {k: d[k] for k in d.files if k != "controls"}
+    ck["controls"] = json.loads(str(d["controls"]))
+    return su.Suspension.restore(ck)
+
+
+def closed_gaps(path: str, seconds: float) -> int:
+    """Closed contacts at round-off gaps, as they are (GAP_ROUNDOFF = 0, the code before
+    2026-12-05) and closed exactly (the default): the LCP of the state at a range of steps,
+    then the stepping from the state for ``seconds`` each, one process, every LCP timed."""
+    import parflow.dynamics.hard_discs as su
+    from parflow.dynamics.lcp import LCPFailure
+    from parflow.geometry import find_candidates
+
+    if not os.path.exists(path):
+        print(f"bench_lcp: no such state file {path!r}", file=sys.stderr)
+        return 2
+    if not seconds > 0:
+        print("bench_lcp: --seconds must be positive", file=sys.stderr)
+        return 2
+    variants = (("as they are", 0.0), ("closed exactly", su.GAP_ROUNDOFF))
+    default, solve = su.GAP_ROUNDOFF, su.solve_lcp
+    lcps, stepping = [], []
+    try:
+        for name, k in variants:
+            su.GAP_ROUNDOFF = k
+            sim = _restore(path)
+            st = sim.state
+            c = find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
+            for dg in (1e-10, 1e-9, 1e-8, 1e-7, 1e-6):
+                t0 = time.perf_counter()
+                try:
+                    _, _, f, _, info, _ = sim.forces(c, dg)
+                    row = dict(solved=True, solves=info.iterations, singular=info.singular,
+                               min_w=info.min_w)
+                except LCPFailure as exc:
+                    row = dict(solved=False, why=str(exc))
+                lcps.append(dict(row, gaps=name, dg=dg, ms=1e3 * (time.perf_counter() - t0)))
+                print(lcps[-1])
+            times = []
+
+            def timed(S, q, warm=None, **kw):
+                t1 = time.perf_counter()
+                try:
+                    out = solve(S, q, warm, **kw)
+                except LCPFailure:
+                    times.append((time.perf_counter() - t1, False))
+                    raise
+                times.append((time.perf_counter() - t1, True))
+                return out
+
+            su.solve_lcp = timed
+            g0, r0, n, dgs = st.gamma, sim.infeasible_reductions, 0, []
+            t0 = time.perf_counter()
+            while time.perf_counter() - t0 < seconds:
+                sim.step(1)
+                n += 1
+                dgs.append(sim.last_dg)
+            wall = time.perf_counter() - t0
+            su.solve_lcp = solve
+            stepping.append(dict(gaps=name, gap_roundoff=k, wall_s=round(wall, 1), steps=n,
+                                 strain=st.gamma - g0, dg_median=float(np.median(dgs)),
+                                 dg_max=float(np.max(dgs)), lcps=len(times),
+                                 gave_up=sum(1 for _, ok in times if not ok),
+                                 gave_up_s=round(sum(t for t, ok in times if not ok), 1),
+                                 retries=sim.infeasible_reductions - r0,
+                                 sigma_end=float(sim.sigma), max_overlap=sim.max_overlap))
+            print(stepping[-1])
+    finally:
+        su.GAP_ROUNDOFF, su.solve_lcp = default, solve
+    data = dict(file=os.path.relpath(path, ROOT), N=int(st.n), phi=float(sim.phi),
+                gamma_from=float(g0), seconds=seconds, lcps=lcps, stepping=stepping,
+                measured=time.strftime("%Y-%m-%d %H:%M:%S"), loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp_closed_gaps", data))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", nargs="?", default=DEFAULT_RUN,
@@ -262,7 +353,15 @@ def main(argv=None) -> int:
                     help="the first tries' LCP budget: --steps steps from RUN's checkpoint with "
                          "600 solves on every try and with the default; writes "
                          "docs/benchmarks/lcp_budget.json")
+    ap.add_argument("--closed-gaps", nargs="?", const=CREEPING_STATE, metavar="STATE",
+                    help="closed contacts at round-off gaps as they are against closed exactly, "
+                         "on STATE (default: %(const)s); writes "
+                         "docs/benchmarks/lcp_closed_gaps.json")
+    ap.add_argument("--seconds", type=float, default=120.0,
+                    help="stepping time of each variant (--closed-gaps)")
     a = ap.parse_args(argv)
+    if a.closed_gaps:
+        return closed_gaps(a.closed_gaps, a.seconds)
     if a.steps < 1:
         print("bench_lcp: --steps must be a positive integer", file=sys.stderr)
         return 2
