@@ -169,6 +169,34 @@ def test_near_singular_active_set_refined():
     assert info.comp <= w_tol * f.max()
 
 
+def test_uphill_solve_along_a_null_vector_is_mirrored():
+    """Contact 3 = contacts 1 + 2: the self-stress u = (1, 1, -1).  At f = (1, 1, 0), w =
+    (0, 0, -0.1): adding contact 3 makes the set singular, and a solve that leaves a
+    multiple of u can point uphill (z - f = t u, w . u > 0) or downhill (-t u).  Uphill,
+    with a negative force in the mirror, it is mirrored (2 f - z: contact 3 loaded, phi
+    lower); downhill, not along a null vector, or with a mirror all >= 0 (that would be a
+    compressed self-stress: for the certificate), z is kept."""
+    import scipy.sparse as sp
+    S = sp.csr_matrix(np.array([[1.0, 0, -1, 0], [0, 1.0, 0, -1], [1.0, 1, -1, -1]]))
+    N = (S @ S.T).tocsr()
+    u = np.array([1.0, 1.0, -1.0])
+    assert np.allclose(S.T @ u, 0.0)
+    f = np.array([1.0, 1.0, 0.0])
+    q = -(N @ f) - np.array([0.0, 0.0, 0.1])
+    w = N @ f + q
+    A = np.ones(3, bool)
+    norm = float(abs(N).sum(axis=1).max())
+    info = co.LCPInfo()
+    z = co._mirrored(N, w, f, f + 10 * u, norm, A, info)
+    np.testing.assert_allclose(z, f - 10 * u)
+    assert info.mirrored == 1 and w @ (z - f) < 0 and z[2] > 0
+    for kept in (f - 10 * u,                        # downhill already
+                 f + np.array([0.0, 0.0, -10.0]),   # uphill, but N d != 0
+                 f + 0.5 * u):                      # the mirror f - u/2 >= 0
+        assert co._mirrored(N, w, f, kept, norm, A, info) is kept
+    assert info.mirrored == 1
+
+
 def test_singular_active_set_is_handled():
     """Duplicated contacts: N_AA is exactly singular (a self-stress); no crash, a valid f."""
     st = msu.make_suspension(32, 0.7, seed=2)
