@@ -191,6 +191,22 @@ def factors(run: str, steps: int, repeat: int) -> int:
     return 0
 
 
+def _timing(solve, times: list):
+    """``solve`` (solve_lcp) that appends (seconds, solved) of every call to ``times``."""
+    from parflow.dynamics.lcp import LCPFailure
+
+    def timed(S, q, warm=None, **kw):
+        t0 = time.perf_counter()
+        try:
+            out = solve(S, q, warm, **kw)
+        except LCPFailure:
+            times.append((time.perf_counter() - t0, False))
+            raise
+        times.append((time.perf_counter() - t0, True))
+        return out
+    return timed
+
+
 def budget(run: str, steps: int) -> int:
     """The first tries' LCP budget (hard_discs.LCP_SOLVES_FIRST): the same ``steps`` steps
     from the checkpoint of ``run``, stepped once with LCP_SOLVES solves on every try (the code
@@ -198,7 +214,6 @@ def budget(run: str, steps: int) -> int:
     trajectories are the same until an LCP needs more solves than the smaller budget, and
     part after that (the step is chaotic in its round-off): compare strain per hour."""
     import parflow.dynamics.hard_discs as su
-    from parflow.dynamics.lcp import LCPFailure
 
     if not os.path.exists(run):
         print(f"bench_lcp: no such run file {run!r}", file=sys.stderr)
@@ -209,18 +224,7 @@ def budget(run: str, steps: int) -> int:
                         ("default", first0)):
         sim, state = _stepper(run)
         solve, times = su.solve_lcp, []
-
-        def timed(S, q, warm=None, **kw):
-            t0 = time.perf_counter()
-            try:
-                out = solve(S, q, warm, **kw)
-            except LCPFailure:
-                times.append((time.perf_counter() - t0, False))
-                raise
-            times.append((time.perf_counter() - t0, True))
-            return out
-
-        su.solve_lcp, su.LCP_SOLVES_FIRST = timed, first
+        su.solve_lcp, su.LCP_SOLVES_FIRST = _timing(solve, times), first
         g0, r0, t0 = sim.state.gamma, sim.infeasible_reductions, time.perf_counter()
         try:
             for _ in range(steps):
@@ -296,18 +300,7 @@ def closed_gaps(path: str, seconds: float) -> int:
                 lcps.append(dict(row, gaps=name, dg=dg, ms=1e3 * (time.perf_counter() - t0)))
                 print(lcps[-1])
             times = []
-
-            def timed(S, q, warm=None, **kw):
-                t1 = time.perf_counter()
-                try:
-                    out = solve(S, q, warm, **kw)
-                except LCPFailure:
-                    times.append((time.perf_counter() - t1, False))
-                    raise
-                times.append((time.perf_counter() - t1, True))
-                return out
-
-            su.solve_lcp = timed
+            su.solve_lcp = _timing(solve, times)
             g0, r0, n, dgs = st.gamma, sim.infeasible_reductions, 0, []
             t0 = time.perf_counter()
             while time.perf_counter() - t0 < seconds:
