@@ -255,10 +255,8 @@ class Suspension:
 
     def end_gaps(self, c: Candidates, dg: float) -> np.ndarray:
         """The candidates' gaps (:meth:`gaps`) with the radii at the end of a step ``dg``."""
-        k = self._swell(dg)
-        if k == 0.0:
-            return self.gaps(c)
-        return self.gaps(c) - k * (self.radii0[c.i] + self.radii0[c.j])
+        gap, k = self.gaps(c), self._swell(dg)
+        return gap if k == 0.0 else gap - k * (self.radii0[c.i] + self.radii0[c.j])
 
     def forces(self, c: Candidates, dg: float, direction: int = 1, first: bool = False):
         """Contact forces for a step of strain magnitude ``dg`` in ``direction`` (+1 forward,
