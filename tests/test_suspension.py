@@ -420,6 +420,26 @@ def test_overlapping_configuration_refused():
         msu.from_configuration([[1.0, 1.0]], [0.5], [0.9, 1.0])
 
 
+def test_contacts_closed_to_round_off_are_not_overlaps():
+    """A state written by a run has its closed contacts at gaps of +- a few eps ||h||: such a
+    configuration is accepted (its closed contacts stay contacts), a larger overlap is not."""
+    import json
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "creeping_state.npz"))
+    ck = {k: d[k] for k in d.files if k != "controls"}
+    ck["controls"] = json.loads(str(d["controls"]))
+    st = hd.Suspension.restore(ck).state
+    new = msu.from_configuration(st.s @ st.h.T, st.radii, np.diag(st.h0), st.gamma)
+    c = geometry.find_candidates(new.s, new.radii, new.h, new.E, 0.0)
+    tol = hd.gap_roundoff(new.h)
+    assert (c.gap < 0).sum() > 1000 and c.gap.min() >= -tol
+    assert new.meta["phi"] == pytest.approx(0.84094, abs=1e-5)
+    # two discs at a gap of -1e-15 (within 4 eps ||h|| = 9e-15) touch; at -1e-12 they overlap
+    touching = msu.from_configuration([[1.0, 1.0], [2.0 - 1e-15, 1.0]], [0.5, 0.5], [10, 10])
+    assert touching.n == 2
+    with pytest.raises(InputError, match="overlapping pair.*1e-12"):
+        msu.from_configuration([[1.0, 1.0], [2.0 - 1e-12, 1.0]], [0.5, 0.5], [10, 10])
+
+
 def test_ranks_agree(comm, dense):
     sim = hd.Suspension(dense.copy())
     stats = sim.run(0.02)
@@ -474,7 +494,7 @@ def test_closed_gaps_at_round_off_are_closed():
     sim = hd.Suspension.restore(ck)
     st = sim.state
     c = geometry.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
-    tol = hd.GAP_ROUNDOFF * co.EPS * np.abs(st.h).sum(axis=1).max()
+    tol = hd.gap_roundoff(st.h)
     closed = np.abs(c.gap) <= tol
     assert closed.sum() > 15000 and (c.gap[closed] < 0).sum() > 5000
     g = sim.gaps(c)

@@ -58,6 +58,14 @@ DEFAULT_SKIN = 0.3
 # hours.  With the closed gaps at 0 the same LCPs end in 1-4 solves up to dg = 1e-7, 17 at
 # 1e-6, and the state moves on at ~1e-6 a step
 GAP_ROUNDOFF = 4.0
+
+
+def gap_roundoff(h: np.ndarray) -> float:
+    """The gaps' round-off in the cell ``h`` (GAP_ROUNDOFF eps ||h||_inf): a gap within it of
+    zero is a closed contact, neither open nor overlapping."""
+    return GAP_ROUNDOFF * EPS * float(np.abs(h).sum(axis=1).max())
+
+
 FIRST_DGAMMA = 1e-4
 # a step is at most this many times the last accepted one: after a step had to be cut
 # (an infeasible LCP, /10 per retry) the next ones grow back geometrically instead of
@@ -250,7 +258,7 @@ class Suspension:
     def gaps(self, c: Candidates) -> np.ndarray:
         """The candidates' gaps, those within the positions' round-off of zero (GAP_ROUNDOFF
         eps ||h||_inf) set to 0: the gaps the step's LCP and its certificate use."""
-        tol = GAP_ROUNDOFF * EPS * float(np.abs(self.state.h).sum(axis=1).max())
+        tol = gap_roundoff(self.state.h)
         return np.where(np.abs(c.gap) <= tol, 0.0, c.gap)
 
     def end_gaps(self, c: Candidates, dg: float) -> np.ndarray:

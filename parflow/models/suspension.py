@@ -28,7 +28,7 @@ import os
 
 import numpy as np
 
-from ..dynamics.hard_discs import Suspension, min_gap
+from ..dynamics.hard_discs import Suspension, gap_roundoff, min_gap
 from ..dynamics.lcp import FACTORS
 from ..geometry import cell_at, find_candidates, velocity_gradient
 from ..observables import correlation as corr
@@ -179,7 +179,8 @@ def relax_overlaps(X: np.ndarray, radii: np.ndarray, pl, max_iter: int):
 
 def from_configuration(positions, radii, box, gamma: float = 0.0) -> State:
     """A State from user positions (N, 2) in a square/rectangular box (Lx, Ly) at strain
-    ``gamma``; refuses overlapping discs, non-positive radii and phi >= phi_J."""
+    ``gamma``; refuses overlapping discs (beyond the positions' round-off,
+    ``hard_discs.gap_roundoff``), non-positive radii and phi >= phi_J."""
     X = np.asarray(positions, dtype=float)
     radii = np.asarray(radii, dtype=float)
     box = np.asarray(box, dtype=float)
@@ -198,11 +199,16 @@ def from_configuration(positions, radii, box, gamma: float = 0.0) -> State:
     check_phi(phi)
     state.meta.update(model="suspension", phi=phi)
     c = find_candidates(state.s, radii, state.h, E, 0.0)
-    bad = c.gap < 0
+    # a contact closed to the positions' round-off (a state written by a run: its closed
+    # contacts sit at gaps of +- a few eps ||h||) is a contact, not an overlap
+    tol = gap_roundoff(state.h)
+    bad = c.gap < -tol
     if np.any(bad):
         raise InputError(f"suspension: the configuration has {int(bad.sum())} overlapping "
                          f"pair(s), the largest overlap {-c.gap.min():.3g} a0 (e.g. discs "
-                         f"{int(c.i[bad][0])} and {int(c.j[bad][0])}); hard discs must not overlap")
+                         f"{int(c.i[bad][0])} and {int(c.j[bad][0])}; overlaps up to the "
+                         f"positions' round-off {tol:.2g} a0 count as contacts); hard discs "
+                         f"must not overlap")
     return state
 
 
