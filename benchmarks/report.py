@@ -719,8 +719,10 @@ def lcp_closed_gaps_section(d):
            f"The recorded state `{d['file']}` (N = {d['N']}, φ = {d['phi']:.4f}, compressed in "
            f"flow, γ = {d['gamma_from']:.6f}), from which a run had crept on at steps of "
            "10⁻¹⁰–10⁻⁹: its closed contacts sit at gaps within a few ε‖h‖ of zero.  Their gaps "
-           "taken as they are (`GAP_ROUNDOFF` = 0, the code before 2026-12-05) and closed "
-           "exactly (the default, `hard_discs.Suspension.gaps`); one process.  First the "
+           "taken as they are (`GAP_ROUNDOFF` = 0) and closed exactly (the default, "
+           "`hard_discs.Suspension.gaps`), the rest of the solver as it was on the date below "
+           "(this measurement: with the mirror of uphill solves, `lcp._mirrored`); one process.  "
+           "First the "
            "state's LCP at each step size (the first tries' budget does not apply):", "",
            "| gaps | Δγ | solved | solves | singular sets | ms |", "|---|---|---|---|---|---|"]
     for r in d["lcps"]:
