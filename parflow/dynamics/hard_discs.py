@@ -58,14 +58,6 @@ DEFAULT_SKIN = 0.3
 # hours.  With the closed gaps at 0 the same LCPs end in 1-4 solves up to dg = 1e-7, 17 at
 # 1e-6, and the state moves on at ~1e-6 a step
 GAP_ROUNDOFF = 4.0
-
-
-def gap_roundoff(h: np.ndarray) -> float:
-    """The gaps' round-off in the cell ``h`` (GAP_ROUNDOFF eps ||h||_inf): a gap within it of
-    zero is a closed contact, neither open nor overlapping."""
-    return GAP_ROUNDOFF * EPS * float(np.abs(h).sum(axis=1).max())
-
-
 FIRST_DGAMMA = 1e-4
 # a step is at most this many times the last accepted one: after a step had to be cut
 # (an infeasible LCP, /10 per retry) the next ones grow back geometrically instead of
@@ -102,6 +94,12 @@ SINGULAR_LAST = 400
 # suspension jammed if the strain left before its gaps close is at most this (issue target:
 # the declared strain within 1e-8 of the certificate's budget)
 JAM_BUDGET = 1e-8
+
+
+def gap_roundoff(h: np.ndarray) -> float:
+    """The gaps' round-off in the cell ``h`` (GAP_ROUNDOFF eps ||h||_inf): a gap within it of
+    zero is a closed contact, neither open nor overlapping."""
+    return GAP_ROUNDOFF * EPS * float(np.abs(h).sum(axis=1).max())
 
 
 def swollen_radii(radii0: np.ndarray, area: float, phi: float) -> np.ndarray:
