@@ -17,6 +17,10 @@ solves, factorisations, and the largest difference of V = S^T f from the recorde
     python benchmarks/bench_lcp.py --budget RUN --steps 600
         # the first tries' LCP budget (150 solves) against 600 on every try, stepping on
         # from RUN's checkpoint; writes docs/benchmarks/lcp_budget.json
+    python benchmarks/bench_lcp.py --retry [STATE ...] [--seconds 120 --rounds 2]
+        # a failed first try retried at the last step's size (the default) against at
+        # RETRY_FACTOR x its size, stepping on from each state (default: the creeping
+        # N = 8192 state and out/bench_lcp_phi0.840.h5); writes docs/benchmarks/lcp_retry.json
     python benchmarks/bench_lcp.py --closed-gaps [--seconds 120]
         # closed contacts at round-off gaps taken as they are against closed exactly
         # (hard_discs.GAP_ROUNDOFF), on the recorded creeping N = 8192 state
@@ -266,6 +270,74 @@ def _restore(path: str):
     return su.Suspension.restore(ck)
 
 
+def _step_for(sim, seconds: float) -> dict:
+    """Step ``sim`` on for ``seconds`` (every LCP timed): steps, strain, step sizes, the LCPs
+    that gave up and their time, retries, sigma at the end, the largest overlap; a shear jam
+    ends it early (``jammed_after_s``)."""
+    import parflow.dynamics.hard_discs as su
+
+    solve, times = su.solve_lcp, []
+    su.solve_lcp = _timing(solve, times)
+    g0, r0, n, dgs, jam = sim.state.gamma, sim.infeasible_reductions, 0, [], None
+    t0 = time.perf_counter()
+    try:
+        while time.perf_counter() - t0 < seconds:
+            try:
+                sim.step(1)
+            except su.ShearJammed:
+                jam = round(time.perf_counter() - t0, 1)
+                break
+            n += 1
+            dgs.append(sim.last_dg)
+    finally:
+        su.solve_lcp = solve
+    wall = time.perf_counter() - t0
+    return dict(wall_s=round(wall, 1), steps=n, strain=sim.state.gamma - g0,
+                dg_median=float(np.median(dgs)) if dgs else 0.0,
+                dg_max=float(np.max(dgs)) if dgs else 0.0, lcps=len(times),
+                gave_up=sum(1 for _, ok in times if not ok),
+                gave_up_s=round(sum(t for t, ok in times if not ok), 1),
+                retries=sim.infeasible_reductions - r0, sigma_end=float(sim.sigma),
+                max_overlap=sim.max_overlap, jammed_after_s=jam)
+
+
+def retry(paths: list, seconds: float, rounds: int) -> int:
+    """The retry of a failed first try (hard_discs.RETRY_AT_LAST): at RETRY_FACTOR x its size
+    (off, the code before 2026-12-06) against at the last accepted step's size first (on, the
+    default), stepping on from each state (a .npz checkpoint as in tests/reference, or a run
+    file with a checkpoint) for ``seconds``, ``rounds`` times each, off and on interleaved,
+    one process.  The trajectories part at the first retry (the step is chaotic in its
+    round-off): compare strain per unit time over the rounds."""
+    import parflow.dynamics.hard_discs as su
+
+    missing = [p for p in paths if not os.path.exists(p)]
+    if missing:
+        print(f"bench_lcp: no such state or run file {missing[0]!r}", file=sys.stderr)
+        return 2
+    if not seconds > 0 or rounds < 1:
+        print("bench_lcp: --seconds must be positive and --rounds at least 1", file=sys.stderr)
+        return 2
+    default, states = su.RETRY_AT_LAST, []
+    try:
+        for path in paths:
+            rows = []
+            for k in range(rounds):
+                for on in (False, True):
+                    su.RETRY_AT_LAST = on
+                    sim = _restore(path) if path.endswith(".npz") else _stepper(path)[0]
+                    meta = dict(file=os.path.relpath(path, ROOT), N=int(sim.state.n),
+                                phi=float(sim.phi), gamma_from=float(sim.state.gamma))
+                    rows.append(dict(retry_at_last=on, round=k, **_step_for(sim, seconds)))
+                    print(rows[-1])
+            states.append(dict(meta, rows=rows))
+    finally:
+        su.RETRY_AT_LAST = default
+    data = dict(seconds=seconds, rounds=rounds, states=states,
+                measured=time.strftime("%Y-%m-%d %H:%M:%S"), loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp_retry", data))
+    return 0
+
+
 def closed_gaps(path: str, seconds: float) -> int:
     """Closed contacts at round-off gaps, as they are (GAP_ROUNDOFF = 0, the code before
     2026-12-05) and closed exactly (the default): the LCP of the state at a range of steps,
@@ -299,23 +371,8 @@ def closed_gaps(path: str, seconds: float) -> int:
                     row = dict(solved=False, why=str(exc))
                 lcps.append(dict(row, gaps=name, dg=dg, ms=1e3 * (time.perf_counter() - t0)))
                 print(lcps[-1])
-            times = []
-            su.solve_lcp = _timing(solve, times)
-            g0, r0, n, dgs = st.gamma, sim.infeasible_reductions, 0, []
-            t0 = time.perf_counter()
-            while time.perf_counter() - t0 < seconds:
-                sim.step(1)
-                n += 1
-                dgs.append(sim.last_dg)
-            wall = time.perf_counter() - t0
-            su.solve_lcp = solve
-            stepping.append(dict(gaps=name, gap_roundoff=k, wall_s=round(wall, 1), steps=n,
-                                 strain=st.gamma - g0, dg_median=float(np.median(dgs)),
-                                 dg_max=float(np.max(dgs)), lcps=len(times),
-                                 gave_up=sum(1 for _, ok in times if not ok),
-                                 gave_up_s=round(sum(t for t, ok in times if not ok), 1),
-                                 retries=sim.infeasible_reductions - r0,
-                                 sigma_end=float(sim.sigma), max_overlap=sim.max_overlap))
+            g0 = st.gamma
+            stepping.append(dict(gaps=name, gap_roundoff=k, **_step_for(sim, seconds)))
             print(stepping[-1])
     finally:
         su.GAP_ROUNDOFF, su.solve_lcp = default, solve
@@ -350,11 +407,19 @@ def main(argv=None) -> int:
                     help="closed contacts at round-off gaps as they are against closed exactly, "
                          "on STATE (default: %(const)s); writes "
                          "docs/benchmarks/lcp_closed_gaps.json")
+    ap.add_argument("--retry", nargs="*", metavar="STATE",
+                    help="the retry of a failed first try at the last step's size against at "
+                         "RETRY_FACTOR x its size, stepping on from each STATE (.npz or run "
+                         "file; default: the creeping state and the phi = 0.840 run file); "
+                         "writes docs/benchmarks/lcp_retry.json")
+    ap.add_argument("--rounds", type=int, default=2, help="rounds of each variant (--retry)")
     ap.add_argument("--seconds", type=float, default=120.0,
-                    help="stepping time of each variant (--closed-gaps)")
+                    help="stepping time of each variant (--closed-gaps, --retry)")
     a = ap.parse_args(argv)
     if a.closed_gaps:
         return closed_gaps(a.closed_gaps, a.seconds)
+    if a.retry is not None:
+        return retry(a.retry or [CREEPING_STATE, DEFAULT_RUN], a.seconds, a.rounds)
     if a.steps < 1:
         print("bench_lcp: --steps must be a positive integer", file=sys.stderr)
         return 2

@@ -252,25 +252,39 @@ def test_redundant_contact_dropped_on_mixed_sign_null_vector():
 
 def test_first_tries_get_the_smaller_lcp_budget(dense, monkeypatch):
     """A step's first two tries solve their LCP with LCP_SOLVES_FIRST solves at most, the
-    third (the step cut twice) with LCP_SOLVES; each failure cuts the step by RETRY_FACTOR,
-    and the step that succeeds is the one taken."""
+    third (the step cut twice) with LCP_SOLVES.  A first try above the last accepted step
+    that fails is retried at the last step's size, and every later failure cuts the step by
+    RETRY_FACTOR; the step that succeeds is the one taken."""
     import copy
     sim = hd.Suspension(copy.deepcopy(dense))
     sim.step()
-    calls = []
-    real = hd.solve_lcp
+    calls, sizes = [], []
+    real, forces = hd.solve_lcp, sim.forces
 
     def flaky(S, q, warm=None, **kw):
         calls.append(kw["max_solves"])
         if len(calls) <= 2:
             raise co.LCPFailure("made to fail")
         return real(S, q, warm, **kw)
+
+    def sized(c, dg, *a, **kw):
+        sizes.append(dg)
+        return forces(c, dg, *a, **kw)
     monkeypatch.setattr(hd, "solve_lcp", flaky)
-    dg0 = sim.next_dgamma()
+    monkeypatch.setattr(sim, "forces", sized)
+    dg0, last = sim.next_dgamma(), sim.last_dg
+    assert dg0 > last > 0                       # the first try grew above the last step
     st = sim.step()
     assert calls == [hd.LCP_SOLVES_FIRST, hd.LCP_SOLVES_FIRST, hd.LCP_SOLVES]
     assert hd.LCP_SOLVES_FIRST < hd.LCP_SOLVES
-    assert st.dgamma == pytest.approx(dg0 * hd.RETRY_FACTOR ** 2, rel=1e-12)
+    assert sizes == [dg0, last, last * hd.RETRY_FACTOR]
+    assert st.dgamma == last * hd.RETRY_FACTOR
+
+    # a first try not above the last step is cut by RETRY_FACTOR at once
+    calls.clear()
+    sizes.clear()
+    st = sim.step(cap=sim.last_dg)
+    assert len(sizes) == 3 and sizes[1] == sizes[0] * hd.RETRY_FACTOR
 
 
 def test_last_resort_budget_before_a_solver_failure(dense, monkeypatch):

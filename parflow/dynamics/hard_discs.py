@@ -21,7 +21,8 @@ conservative; sigma = sigma_fb + gap_work holds with the gap work of the end gap
 of swelling against the contact forces included).
 
 Step size: min(dg_max, c/sigma, dmax/max|V|, MAX_GROWTH x the last step, the leg's cap);
-an infeasible LCP divides it by 10, an oversized displacement by 2; below dg_min with an
+an infeasible LCP divides it by 10 (a first try above the last step is first retried at the
+last step's size), an oversized displacement by 2; below dg_min with an
 infeasible LCP the suspension is declared shear-jammed (:class:`ShearJammed`) only if a
 compressed self-stress proves it (``dynamics.jamming``), else the step is a solver failure
 (:class:`~parflow.dynamics.lcp.ContactSolveError`).
@@ -69,8 +70,15 @@ MAX_GROWTH = 4.0
 # at small steps only: overlapping gaps weigh -h/dg; and a step may fail for the solver's
 # sake at one size and not at another)
 UPWARD_FACTOR = 4.0
-# an infeasible LCP retries the step at RETRY_FACTOR x its size
+# an infeasible LCP retries the step at RETRY_FACTOR x its size -- except a first try above
+# the last accepted step (grown by up to MAX_GROWTH), which is retried at the last step's
+# size first.  Measured 2026-12-06 near a jam (the N = 8192 state of
+# tests/reference/creeping_state.npz, a third of the first tries failing, 120 s of stepping
+# twice each): 1.5-1.6e-4 strain against 1.0e-4, median step 1.3-1.4e-6 against 3.3e-7;
+# flowing at phi = 0.840 (N = 4096, retries in ~0.4 % of the steps) the same speed
+# (benchmarks/bench_lcp.py --retry, which switches RETRY_AT_LAST off to compare)
 RETRY_FACTOR = 0.1
+RETRY_AT_LAST = True
 # The first two tries of a step get a budget of LCP_SOLVES_FIRST solves (solve_lcp's
 # max_solves); the later tries (a step cut twice, the upward search) get LCP_SOLVES.
 # Measured at phi = 0.8407, N = 4096 (659 LCPs of 600 steps): the 25 LCPs that gave up
@@ -388,7 +396,12 @@ class Suspension:
                     self._jam_or_fail(cert, c, direction, tried, why, gave_up)
                 dg = upward.pop(0)
                 continue
-            dg *= 0.5 if feasible else RETRY_FACTOR
+            if not feasible and len(tried) == 1 and RETRY_AT_LAST and 0 < self.last_dg < dg:
+                # a first try above the last accepted step failed: that step again (taken
+                # from a nearby state a step ago) before cutting by RETRY_FACTOR
+                dg = self.last_dg
+            else:
+                dg *= 0.5 if feasible else RETRY_FACTOR
             if dg < self.dg_min and not feasible and tried[-1] > self.dg_min:
                 dg = self.dg_min            # the smallest step is tried before giving up
             if dg < self.dg_min:
