@@ -72,11 +72,12 @@ MAX_GROWTH = 4.0
 UPWARD_FACTOR = 4.0
 # an infeasible LCP retries the step at RETRY_FACTOR x its size -- except a first try above
 # the last accepted step (grown by up to MAX_GROWTH), which is retried at the last step's
-# size first.  Measured 2026-12-06 near a jam (the N = 8192 state of
-# tests/reference/creeping_state.npz, a third of the first tries failing, 120 s of stepping
-# twice each): 1.5-1.6e-4 strain against 1.0e-4, median step 1.3-1.4e-6 against 3.3e-7;
-# flowing at phi = 0.840 (N = 4096, retries in ~0.4 % of the steps) the same speed
-# (benchmarks/bench_lcp.py --retry, which switches RETRY_AT_LAST off to compare)
+# size first.  Measured 2026-12-06 (benchmarks/bench_lcp.py --retry, which switches
+# RETRY_AT_LAST off to compare; 120 s of stepping, two rounds each): near a jam (the N = 8192
+# state of tests/reference/creeping_state.npz, a third of the first tries failing) 1.6e-4
+# strain against 1.0e-4, median step 1.4e-6 against 3.2e-7; flowing at phi = 0.840 (N =
+# 4096, retries in ~0.4 % of the steps) 2 and 7 % less strain, within the timing noise (the
+# same trajectory's two rounds differ by 6 %)
 RETRY_FACTOR = 0.1
 RETRY_AT_LAST = True
 # The first two tries of a step get a budget of LCP_SOLVES_FIRST solves (solve_lcp's
