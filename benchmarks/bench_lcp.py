@@ -353,13 +353,14 @@ def closed_gaps(path: str, seconds: float) -> int:
         print("bench_lcp: --seconds must be positive", file=sys.stderr)
         return 2
     variants = (("as they are", 0.0), ("closed exactly", su.GAP_ROUNDOFF))
-    default, solve = su.GAP_ROUNDOFF, su.solve_lcp
+    default = su.GAP_ROUNDOFF
     lcps, stepping = [], []
     try:
         for name, k in variants:
             su.GAP_ROUNDOFF = k
             sim = _restore(path)
             st = sim.state
+            start = dict(N=int(st.n), phi=float(sim.phi), gamma_from=float(st.gamma))
             c = find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
             for dg in (1e-10, 1e-9, 1e-8, 1e-7, 1e-6):
                 t0 = time.perf_counter()
@@ -371,13 +372,12 @@ def closed_gaps(path: str, seconds: float) -> int:
                     row = dict(solved=False, why=str(exc))
                 lcps.append(dict(row, gaps=name, dg=dg, ms=1e3 * (time.perf_counter() - t0)))
                 print(lcps[-1])
-            g0 = st.gamma
             stepping.append(dict(gaps=name, gap_roundoff=k, **_step_for(sim, seconds)))
             print(stepping[-1])
     finally:
-        su.GAP_ROUNDOFF, su.solve_lcp = default, solve
-    data = dict(file=os.path.relpath(path, ROOT), N=int(st.n), phi=float(sim.phi),
-                gamma_from=float(g0), seconds=seconds, lcps=lcps, stepping=stepping,
+        su.GAP_ROUNDOFF = default
+    data = dict(file=os.path.relpath(path, ROOT), **start, seconds=seconds, lcps=lcps,
+                stepping=stepping,
                 measured=time.strftime("%Y-%m-%d %H:%M:%S"), loadavg=list(os.getloadavg()))
     print("wrote", results.write("lcp_closed_gaps", data))
     return 0

@@ -434,14 +434,19 @@ def test_overlapping_configuration_refused():
         msu.from_configuration([[1.0, 1.0]], [0.5], [0.9, 1.0])
 
 
+def _recorded(name: str) -> hd.Suspension:
+    """The stepper restored from a checkpoint recorded in tests/reference (.npz)."""
+    import json
+    d = np.load(os.path.join(os.path.dirname(__file__), "reference", name))
+    ck = {k: d[k] for k in d.files if k != "controls"}
+    ck["controls"] = json.loads(str(d["controls"]))
+    return hd.Suspension.restore(ck)
+
+
 def test_contacts_closed_to_round_off_are_not_overlaps():
     """A state written by a run has its closed contacts at gaps of +- a few eps ||h||: such a
     configuration is accepted (its closed contacts stay contacts), a larger overlap is not."""
-    import json
-    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "creeping_state.npz"))
-    ck = {k: d[k] for k in d.files if k != "controls"}
-    ck["controls"] = json.loads(str(d["controls"]))
-    st = hd.Suspension.restore(ck).state
+    st = _recorded("creeping_state.npz").state
     new = msu.from_configuration(st.s @ st.h.T, st.radii, np.diag(st.h0), st.gamma)
     c = geometry.find_candidates(new.s, new.radii, new.h, new.E, 0.0)
     tol = hd.gap_roundoff(new.h)
@@ -480,11 +485,7 @@ def test_jam_proved_beyond_a_small_strain_budget():
     compressed self-stress at the smallest step, but proves one at the largest (tau.b < 0)
     whose gaps close after 1.8e-10 strain: shear-jammed within that budget (<= JAM_BUDGET),
     not a solver failure; the record says at which step it was proved."""
-    import json
-    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "jam_budget_state.npz"))
-    ck = {k: d[k] for k in d.files if k != "controls"}
-    ck["controls"] = json.loads(str(d["controls"]))
-    sim = hd.Suspension.restore(ck)
+    sim = _recorded("jam_budget_state.npz")
     with pytest.raises(hd.ShearJammed, match="strain budget") as e:
         sim.step(1)
     rec = e.value.certificate
@@ -501,11 +502,7 @@ def test_closed_gaps_at_round_off_are_closed():
     (Suspension.gaps): at dg = 1e-8 it ends in a few solves, no singular set, w >= 0 to
     round-off; with the raw gaps it meets singular sets or fails; and a step from the state
     is accepted at the size the step control tries first."""
-    import json
-    d = np.load(os.path.join(os.path.dirname(__file__), "reference", "creeping_state.npz"))
-    ck = {k: d[k] for k in d.files if k != "controls"}
-    ck["controls"] = json.loads(str(d["controls"]))
-    sim = hd.Suspension.restore(ck)
+    sim = _recorded("creeping_state.npz")
     st = sim.state
     c = geometry.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
     tol = hd.gap_roundoff(st.h)
