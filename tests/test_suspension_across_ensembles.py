@@ -195,6 +195,19 @@ def test_main_without_ensembles_fails_with_one_line(tmp_path, capsys):
     assert sae.main([str(tmp_path), "--boot", "-1"]) == 2
 
 
+def test_across_ensemble_command_lines_name_a_missing_path(tmp_path, capsys):
+    """A mistyped PATH is named as missing (one line, exit 2), not reported as "no ensemble
+    found": the analyses and the figures across ensembles, networks and suspensions."""
+    from parflow.plot import network_ensembles, suspension_ensembles, suspension_jams as psj
+    from parflow.post import network_across_ensembles, suspension_jams
+    gone = str(tmp_path / "no_such_ensemble")
+    for mod in (sae, network_across_ensembles, suspension_jams, network_ensembles,
+                suspension_ensembles, psj):
+        assert mod.main([str(tmp_path), gone]) == 2, mod.__name__
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no such file or folder" in err[0] and gone in err[0], err
+
+
 @pytest.mark.serial_only
 def test_ensemble_scenes_cover_the_phi_scan():
     from parflow.scene import load_scene   # (the scene schema: only this test needs it)

@@ -32,7 +32,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 
 from ..errors import InputError
-from ..post.network_across_ensembles import analyse_or_report
+from ..post.network_across_ensembles import analyse_or_report, missing_path
 from ..post.runs import Run, load
 
 
@@ -196,6 +196,8 @@ def across_ensembles_cli(argv, prog: str, description: str, analyse, format_tabl
     ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
     args = ap.parse_args(argv)
     name = prog.rsplit(" ", 1)[-1]
+    if missing_path(args.folders, name):
+        return 2
     res = analyse_or_report(analyse, (args.folders,), name, empty)
     if res is None:
         return 2

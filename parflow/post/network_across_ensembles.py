@@ -501,6 +501,16 @@ def _jsonable(x):
     return x
 
 
+def missing_path(paths, name: str) -> bool:
+    """True after one line on stderr if one of ``paths`` does not exist (the command lines
+    then exit 2: a mistyped path is named as such, not taken for an empty folder)."""
+    for p in paths:
+        if not os.path.exists(p):
+            print(f"{name}: no such file or folder {p!r}", file=sys.stderr)
+            return True
+    return False
+
+
 def analyse_or_report(analyse, args: tuple, name: str, empty: str) -> dict | None:
     """``analyse(*args)``, or None after one line on stderr: the ValueError of a bad input, or
     ``empty`` when it found no ensemble (the command lines then exit 2)."""
@@ -534,6 +544,8 @@ def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str
     name = prog.rsplit(".", 1)[-1]
     if args.boot < 0:
         print(f"{name}: --boot must be >= 0 (0: no bootstrap)", file=sys.stderr)
+        return 2
+    if missing_path(args.folders, name):
         return 2
     res = analyse_or_report(analyse, (args.folders, args.boot), name, empty)
     if res is None:

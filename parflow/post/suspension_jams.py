@@ -48,7 +48,7 @@ import numpy as np
 
 from ..io import RunFile, atomic_json
 from .ensemble import find_sources, mean_sem, read_table, sample_files
-from .network_across_ensembles import _jsonable, analyse_or_report
+from .network_across_ensembles import _jsonable, analyse_or_report, missing_path
 
 JAMS_KIND = "parflow suspension jams"
 JAMS_VERSION = 1
@@ -296,10 +296,8 @@ def main(argv=None) -> int:
                     "jam table (JSON) to FILE")
     args = ap.parse_args(argv)
     name = "suspension_jams"
-    for p in args.paths:
-        if not os.path.exists(p):
-            print(f"{name}: no such file or folder {p!r}", file=sys.stderr)
-            return 2
+    if missing_path(args.paths, name):
+        return 2
     res = analyse_or_report(analyse, (args.paths,), name,
                             "no compressed suspension ensemble sample found (a PATH is an "
                             "ensemble folder, a jam table, or a folder holding them)")
