@@ -9,10 +9,11 @@ only (tests/test_plot.py).
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
-from .cli import init_petsc
+from .cli import init_petsc, run_main
 from .post import chain_theory as ct
 
 
@@ -59,6 +60,30 @@ def split(N: int, eps: float, mu: int, seed: int, tol: float = 0.003,
     return rows
 
 
+def check_args(N: int, eps: float, mu: int, seed: int, tol: float, fractions: str) -> tuple:
+    """The fractions as floats, or InputError naming the bad argument: N, EPS and MU by the
+    chain model's own checks (``models.chain.PARAMS``, as a scene's [model] table), SEED >= 0,
+    0 < tol < 1, fractions in (0, 1) and decreasing."""
+    from .models.chain import PARAMS
+    from .state import InputError
+    for name, arg, value in (("N", "N", N), ("epsilon", "EPS", eps), ("mu", "MU", mu)):
+        if not PARAMS[name][2](value):
+            raise InputError(f"{arg} = {value!r}: {PARAMS[name][3]}")
+    if seed < 0:
+        raise InputError(f"SEED = {seed}: a seed is an integer >= 0")
+    if not 0 < tol < 1:
+        raise InputError(f"--tol {tol}: the RKC2 tolerance must lie in (0, 1), e.g. 0.003")
+    try:
+        fr = tuple(float(v) for v in fractions.split(","))
+    except ValueError:
+        raise InputError(f"--fractions {fractions!r}: give numbers separated by commas, "
+                         "e.g. 0.5,0.1,0.01") from None
+    if not all(0 < f < 1 for f in fr) or any(b >= a for a, b in zip(fr, fr[1:])):
+        raise InputError(f"--fractions {fractions!r}: each x / gamma_c must lie in (0, 1), "
+                         "in decreasing order")
+    return fr
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m parflow.chain_split", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -71,11 +96,15 @@ def main(argv=None):
                    help="where to stop, x / gamma_c, comma separated, decreasing")
     a = p.parse_args(argv)
     init_petsc([])
-    print(f"N = {a.N}, eps = {a.eps}, mu = {a.mu}, seed = {a.seed}, RKC2 tol = {a.tol}")
-    fr = tuple(float(v) for v in a.fractions.split(","))
-    for row in split(a.N, a.eps, a.mu, a.seed, tol=a.tol, fractions=fr):
-        print("  " + "  ".join(f"{k}={v:.3e}" for k, v in row.items()), flush=True)
+
+    def body():
+        fr = check_args(a.N, a.eps, a.mu, a.seed, a.tol, a.fractions)
+        print(f"N = {a.N}, eps = {a.eps}, mu = {a.mu}, seed = {a.seed}, RKC2 tol = {a.tol}")
+        for row in split(a.N, a.eps, a.mu, a.seed, tol=a.tol, fractions=fr):
+            print("  " + "  ".join(f"{k}={v:.3e}" for k, v in row.items()), flush=True)
+
+    return run_main("parflow.chain_split", body)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

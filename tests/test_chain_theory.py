@@ -189,3 +189,22 @@ def test_split_transverse_and_longitudinal(comm):
         assert row["V2"] == pytest.approx(row["theory_V2"], rel=0.03)
     big = split(300, 0.1, 2, 1, fractions=(0.2,))[0]
     assert big["Vx2"] > 0.3 * big["V2"] and big["tension_std"] > 0.3 * big["tension"]
+
+
+@pytest.mark.serial_only
+@pytest.mark.parametrize("args, says", [
+    (["-5", "0.1", "0", "1"], "N = -5"),
+    (["100", "-0.1", "0", "1"], "EPS = -0.1"),
+    (["100", "0.1", "1", "1"], "MU = 1"),
+    (["100", "0.1", "0", "-1"], "SEED = -1"),
+    (["100", "0.1", "0", "1", "--tol", "-1"], "--tol"),
+    (["100", "0.1", "0", "1", "--fractions", "abc"], "--fractions 'abc'"),
+    (["100", "0.1", "0", "1", "--fractions", "0.1,0.5"], "decreasing"),
+])
+def test_chain_split_refuses_bad_input_with_one_line(args, says, capsys):
+    """python -m parflow.chain_split: a bad argument is one line naming it, exit 2 (the chain
+    model's own checks for N, EPS, MU), before any chain is built."""
+    from parflow.chain_split import main
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0], err
