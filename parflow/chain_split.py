@@ -64,6 +64,7 @@ def check_args(N: int, eps: float, mu: int, seed: int, tol: float, fractions: st
     """The fractions as floats, or InputError naming the bad argument: N, EPS and MU by the
     chain model's own checks (``models.chain.PARAMS``, as a scene's [model] table), SEED >= 0,
     0 < tol < 1, fractions in (0, 1) and decreasing."""
+    # (here, not at the top: the models package loads PETSc, which main() initialises first)
     from .models.chain import PARAMS
     from .state import InputError
     for name, arg, value in (("N", "N", N), ("epsilon", "EPS", eps), ("mu", "MU", mu)):
