@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import argparse
 import glob
-import json
 import os
 
 import numpy as np
 
-from ..io import RunFile
+from ..io import RunFile, atomic_json
 from ..post import chain_theory as ct
 from ..post.ensemble import mean_sem
 from ..post.fits import BINS_PER_DECADE, fit_power_law, forward_instants, forward_rows
@@ -215,8 +214,7 @@ def main(argv=None):
         fig.savefig(a.png, dpi=72)
     out = [_jsonable(r) for r in results]
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+        atomic_json(a.json, out, indent=1)
     for r in out:
         print(r["folder"], f"N={r['N']} mu={r['mu']} samples={r['n_samples']}")
         for q, d in r["exponents"].items():

@@ -72,7 +72,6 @@ Figures: ``python -m parflow.plot.network_ensembles``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -511,6 +510,14 @@ def missing_path(paths, name: str) -> bool:
     return False
 
 
+def print_and_save(res: dict, format_table, json_path: str | None) -> None:
+    """The table of ``res`` on stdout, and ``res`` as JSON to ``json_path`` (whole or not at
+    all) when given: the end of every across-ensembles command line."""
+    print("\n".join(format_table(res)))
+    if json_path:
+        atomic_json(json_path, _jsonable(res), indent=1)
+
+
 def analyse_or_report(analyse, args: tuple, name: str, empty: str) -> dict | None:
     """``analyse(*args)``, or None after one line on stderr: the ValueError of a bad input, or
     ``empty`` when it found no ensemble (the command lines then exit 2)."""
@@ -550,10 +557,7 @@ def run_cli(argv, prog: str, description: str, analyse, format_table, empty: str
     res = analyse_or_report(analyse, (args.folders, args.boot), name, empty)
     if res is None:
         return 2
-    print("\n".join(format_table(res)))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(_jsonable(res), fh, indent=1)
+    print_and_save(res, format_table, args.json)
     if export is not None and args.export:
         for path in export(args.folders, args.export):
             print(f"{name}: wrote {path}")

@@ -38,7 +38,6 @@ down for both.  Figure: ``python -m parflow.plot.suspension_jams PATH...``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -48,7 +47,8 @@ import numpy as np
 
 from ..io import RunFile, atomic_json
 from .ensemble import find_sources, mean_sem, read_table, sample_files
-from .network_across_ensembles import _jsonable, analyse_or_report, missing_path
+from .network_across_ensembles import (_jsonable, analyse_or_report, missing_path,
+                                      print_and_save)
 
 JAMS_KIND = "parflow suspension jams"
 JAMS_VERSION = 1
@@ -303,10 +303,7 @@ def main(argv=None) -> int:
                             "ensemble folder, a jam table, or a folder holding them)")
     if res is None:
         return 2
-    print("\n".join(format_table(res)))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(_jsonable(res), fh, indent=1)
+    print_and_save(res, format_table, args.json)
     if args.export:
         print(f"{name}: wrote {export(args.paths, args.export)}")
     return 0
