@@ -118,6 +118,8 @@ def plot(res: dict, png: str, title: str = "") -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from .plot.base import save_figure
     fig, ax = plt.subplots(1, 3, figsize=(13, 4))
     for d, mk, lab in ((1, "o", "forward"), (-1, "s", "reverse")):
         m = res["direction"] == d
@@ -137,10 +139,10 @@ def plot(res: dict, png: str, title: str = "") -> None:
         a.legend(fontsize=7)
     fig.suptitle(title or "modes along the run")
     fig.tight_layout()
-    tmp = png[:-4] + ".part.png"
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, png)
+    try:
+        save_figure(fig, png, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def _same_file(a: str, b: str) -> bool:

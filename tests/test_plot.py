@@ -707,3 +707,26 @@ def test_suspension_relaxation_is_passed_in(tmp_path):
     assert "relaxation" not in post_suspension.suspension_fits(run, None)
     rel = plot.model_fits(run)["relaxation"]
     assert rel["pairs"] == seen[0] - 1          # every step collision-free
+
+
+def test_save_figure_writes_whole_or_nothing(tmp_path):
+    """plot.base.save_figure: a figure is written under its name only when complete; a save
+    that fails half-way leaves neither the file nor its twin, and an earlier file stays."""
+    from parflow.plot.base import new_figure, save_figure
+    fig = new_figure(2, 2)
+    fig.add_subplot().plot([0, 1], [1, 0])
+    path = str(tmp_path / "f.png")
+    assert save_figure(fig, path) == path
+    good = open(path, "rb").read()
+    assert good[:8] == b"\x89PNG\r\n\x1a\n"
+
+    def broken(target, **kw):
+        with open(target, "wb") as fh:
+            fh.write(b"\x89PNG half")
+        raise OSError("disk full")
+
+    fig.savefig = broken
+    with pytest.raises(OSError, match="disk full"):
+        save_figure(fig, path)
+    assert open(path, "rb").read() == good
+    assert os.listdir(tmp_path) == ["f.png"]

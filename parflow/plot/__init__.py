@@ -45,7 +45,7 @@ from ..post.report import format_fits
 # the figure modules register their figures on import, in this order (= the order drawn)
 from . import chain, common, network, network_across, suspension  # noqa: F401
 from .base import (ACROSS_FIGURES, FIGURES, MODELS, Run, RunFileError, Skip,  # noqa: F401
-                   figure, load_run)
+                   figure, load_run, save_figure)
 from .ensemble import ENSEMBLE_FIGURES, make_ensemble_plots  # noqa: F401  (FOLDER of an ensemble)
 
 __all__ = ["ACROSS_FIGURES", "FIGURES", "MODELS", "PlotResult", "Run", "RunFileError", "Skip",
@@ -118,9 +118,7 @@ def _draw(res: PlotResult, name: str, draw, outdir: str, fmt: str) -> None:
 
 def _save(fig: Figure, outdir: str, name: str, fmt: str) -> str:
     os.makedirs(outdir, exist_ok=True)
-    out = os.path.join(outdir, f"{name}.{fmt}")
-    fig.savefig(out, format=fmt)
-    return out
+    return save_figure(fig, os.path.join(outdir, f"{name}.{fmt}"), fmt)
 
 
 def default_across_outdir(paths: list[str]) -> str:

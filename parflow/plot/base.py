@@ -120,6 +120,22 @@ def new_figure(w, h) -> Figure:
     return fig
 
 
+def save_figure(fig: Figure, path: str, fmt: str | None = None, **kw) -> str:
+    """Save ``fig`` to ``path`` whole or not at all (a twin ``path.part``, renamed over
+    ``path``; removed on any error): a figure is never left half-written.  ``fmt`` defaults
+    to the extension of ``path``."""
+    fmt = fmt or os.path.splitext(path)[1].lstrip(".") or "png"
+    tmp = path + ".part"
+    try:
+        fig.savefig(tmp, format=fmt, **kw)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return path
+
+
 def reference(ax, x0, y0, slope, span, label, **kw):
     """A dashed power law y = y0 (x/x0)^slope over [x0/span, x0*span]."""
     if not (np.isfinite(x0) and np.isfinite(y0) and x0 > 0 and y0 > 0):
@@ -205,8 +221,7 @@ def across_ensembles_cli(argv, prog: str, description: str, analyse, format_tabl
     out = args.out or (first if os.path.isdir(first) else os.path.dirname(first) or ".")
     os.makedirs(out, exist_ok=True)
     for fname, fig in figures(res):
-        p = os.path.join(out, f"{fname}.{args.format}")
-        fig.savefig(p, format=args.format)
+        p = save_figure(fig, os.path.join(out, f"{fname}.{args.format}"), args.format)
         print(p)
     print("\n".join(format_table(res)), file=sys.stderr)
     return 0

@@ -29,7 +29,7 @@ from ..post import chain_theory as ct
 from ..post.ensemble import mean_sem
 from ..post.fits import BINS_PER_DECADE, fit_power_law, forward_instants, forward_rows
 from ..post.runs import load
-from .base import new_figure
+from .base import new_figure, save_figure
 
 QUANTITIES = ("V2", "dtheta2", "l_corr")
 LABEL = {"V2": r"$\langle V^2\rangle$", "dtheta2": r"$\langle\Delta\theta^2\rangle$",
@@ -211,7 +211,7 @@ def main(argv=None):
     results = [compare(f) for f in a.folders]
     if a.png:
         fig = figure(results)
-        fig.savefig(a.png, dpi=72)
+        save_figure(fig, a.png, dpi=72)
     out = [_jsonable(r) for r in results]
     if a.json:
         atomic_json(a.json, out, indent=1)

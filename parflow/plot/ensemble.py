@@ -10,7 +10,7 @@ import os
 import numpy as np
 
 from ..post.ensemble import read_summary
-from .base import Skip, new_figure
+from .base import Skip, new_figure, save_figure
 
 ENSEMBLE_FIGURES: dict = {}
 
@@ -75,7 +75,5 @@ def make_ensemble_plots(folder: str, outdir: str | None = None, fmt: str = "png"
             skipped.append((name, str(exc)))
             continue
         os.makedirs(outdir, exist_ok=True)
-        out = os.path.join(outdir, f"{name}.{fmt}")
-        fig.savefig(out, format=fmt)
-        written.append(out)
+        written.append(save_figure(fig, os.path.join(outdir, f"{name}.{fmt}"), fmt))
     return written, skipped
