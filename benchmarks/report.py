@@ -331,7 +331,16 @@ def network_shear_section(d):
             "`solver.parallel = \"threads\"` (bench_force, Nc = 99 556, nothing else running) it "
             "is 3 % faster than one rank, 8 % faster than two replicated ranks (docs/solvers.md).  "
             "(`err_forward` is O(1) for `fast` because both runs reach the divergence of σ at "
-            "slightly different strains — 7·10⁻⁸ apart — and log σ at equal γ amplifies that.)", "",
+            "slightly different strains — 7·10⁻⁸ apart — and log σ at equal γ amplifies that.)"
+            "  Profiled once (2026-12-06, cProfile, Heun default forward to σ = 10⁵ on one rank, "
+            "sharing the two cores with two long runs, so the seconds are inflated but not the "
+            "shares): 626 steps, 1 363 factorisations and 3 296 KSP solves take 810 of 907 s "
+            "(89 %); the geometry (pair vectors, lengths, b) 39 s, the values of N 20 s, the "
+            "projection's other work and Sᵀτ ~15 s, the run file 3 s — everything outside the "
+            "factorisations and triangular solves is ≤ 11 %, so trimming it cannot approach the "
+            "90 s asked.  ROS2 (tol = max_displacement = 0.2) to σ = 10⁵ alike: 296 steps, 10 915 "
+            "KSP solves (297 of them with a factorisation) 431 of 585 s (74 %), the sparse "
+            "products of its Jacobian–vector products 53 s (9 %), GMRES's own work 11 s.", "",
             f"Measured {', '.join(sorted({r['date'] for r in d['records']}))}; load at the end "
             f"{', '.join(str([round(x, 1) for x in r['load_end']]) for r in d['records'])}.", ""]
     return out

@@ -60,6 +60,32 @@ def test_gmres_solves_reports_and_gives_ritz_values():
     assert zero.converged and not zero.x.any()
 
 
+def test_gmres_from_another_systems_krylov_space():
+    """A second right-hand side of the same operator started from the first solve's Krylov
+    space (ROS2's krylov_recycle): the same tolerance met with fewer new products, and a
+    right-hand side inside that space needs none."""
+    rng = np.random.default_rng(1)
+    n = 200
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    A = (Q * np.geomspace(1.0, 1e3, n)) @ Q.T + np.triu(rng.standard_normal((n, n)), 1) / n
+    op = lambda x: A @ x                                              # noqa: E731
+    b1 = rng.standard_normal(n)
+    first = gmres(op, b1, 1e-8, 200)
+    Qk, H = first.space
+    assert Qk.shape == (first.iterations + 1, n) and H.shape == (first.iterations + 1, first.iterations)
+    np.testing.assert_allclose(A @ Qk[:-1].T, Qk.T @ H, atol=1e-9 * np.abs(A).max())
+    b2 = b1 - 2.0 * first.x + 0.05 * rng.standard_normal(n)          # ROS2's stage 2 shape
+    plain = gmres(op, b2, 1e-8, 200)
+    again = gmres(op, b2, 1e-8, 200, space=first.space)
+    for r in (plain, again):
+        assert r.converged and np.linalg.norm(A @ r.x - b2) <= 1.01e-8 * np.linalg.norm(b2)
+    assert again.iterations < plain.iterations
+    np.testing.assert_allclose(again.x, plain.x, rtol=0, atol=1e-6 * np.linalg.norm(plain.x))
+    inside = gmres(op, 3.0 * b1, 1e-8, 200, space=first.space)       # in the space already
+    assert inside.converged and inside.iterations == 0
+    np.testing.assert_allclose(inside.x, 3.0 * first.x, rtol=0, atol=1e-9 * np.linalg.norm(first.x))
+
+
 CHAIN = """
 seed = 1
 [model]
@@ -234,3 +260,48 @@ path = "{path}"
         assert np.max(ts["sigma"][:]) >= 1e3 and ts["sigma"][-1] <= 20
         assert f.attrs["krylov_iterations"] > 0
     comm.barrier()
+
+
+def test_ros2_krylov_recycle_on_a_network(mpi_tmp_path, comm):
+    """krylov_recycle: the second stage from the first one's Krylov space -- fewer GMRES
+    iterations for the same run within the stage tolerance (same steps, sigma within the
+    error the stage tolerance allows), rods rigid, the sigma identity."""
+    out = {}
+    for recycle in ("false", "true"):
+        path = str(mpi_tmp_path / f"recycle_{recycle}.h5")
+        text = f"""
+seed = 7
+[model]
+name = "network"
+N = 128
+z = 3.8
+[[protocol.leg]]
+direction = "forward"
+sigma_above = 1e3
+[integrator]
+method = "ros2"
+krylov_recycle = {recycle}
+[output]
+path = "{path}"
+"""
+        assert run_scene(load_scene(text)) == "complete"
+        comm.barrier()
+        with h5py.File(path, "r") as f:
+            ts = f["timeseries"]
+            out[recycle] = {k: ts[k][:] for k in ("gamma", "sigma", "sigma_tb", "length_error")}
+            out[recycle]["krylov"] = int(f.attrs["krylov_iterations"])
+        comm.barrier()
+    a, b = out["false"], out["true"]
+    assert b["krylov"] < 0.85 * a["krylov"]
+    assert np.max(b["length_error"]) <= 1e-11
+    np.testing.assert_allclose(b["sigma_tb"], b["sigma"], rtol=1e-8)
+    # the same flow: sigma of one run at the other's strains (log-linear between steps; the
+    # step sizes differ at the stage tolerance), and the strain where sigma reaches 1e3
+    assert abs(b["gamma"].size - a["gamma"].size) <= 2
+    ls = np.interp(a["gamma"][1:], b["gamma"], np.log(b["sigma"]))
+    assert np.max(np.abs(ls - np.log(a["sigma"][1:]))) <= 1e-3      # measured 1.4e-4
+
+    def crossing(d):
+        g, ls = d["gamma"][-2:], np.log(d["sigma"][-2:])
+        return g[0] + (np.log(1e3) - ls[0]) * (g[1] - g[0]) / (ls[1] - ls[0])
+    assert crossing(b) == pytest.approx(crossing(a), abs=1e-6)       # measured 2.4e-8

@@ -95,6 +95,9 @@ class StepControl:
     krylov_rtol: float = key(1e-3, lambda v: 0 < v < 1, "in (0, 1)",
                              "ros2: relative residual of the stage equations (GMRES, each "
                              "iteration one solve with the step's factor)")
+    krylov_recycle: bool = key(False, None, "true or false",
+                               "ros2: the second stage equation starts from the first one's "
+                               "Krylov space (the same W): fewer GMRES iterations")
 
     def validate(self):
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",

@@ -19,7 +19,8 @@ One step of size h = direction * dg from s with F0 = F(s) (N factorised at s):
     max_displacement).
 ROS2 is of order 2 for any W (a W-method), so J need not be exact: each stage equation is
 solved by GMRES (dynamics.krylov) to the relative residual ``krylov_rtol``, each product J u
-one solve with the factor at s.  The stage force F(s + h k1) is a PCG on that factor to
+one solve with the factor at s (with ``krylov_recycle`` the second stage starts from the
+first stage's Krylov space: dynamics.krylov).  The stage force F(s + h k1) is a PCG on that factor to
 ``stage_rtol`` (STAGE_RTOL if the key is 0: the stage force enters the solution directly);
 should the PCG fall back to a factorisation there, the factor of stage 1 is loaded again
 for the second stage (W must be the same in both).  The end of the step s + h (3/2 k1 + 1/2
@@ -102,14 +103,16 @@ class ROS2(Heun):
         dg = super().bound(F, dg)
         return min(dg, 0.9 * GROWTH_MAX / self.rate_plus) if self.rate_plus > 0 else dg
 
-    def _stage(self, W, rhs: np.ndarray, shape):
-        """GMRES on W x = rhs: (x, Ritz values), or (None, None) if it did not converge."""
-        res = gmres(W, rhs.ravel(), self.c.krylov_rtol, KRYLOV_MAX_IT)
+    def _stage(self, W, rhs: np.ndarray, shape, space=None):
+        """GMRES on W x = rhs (from the Krylov ``space`` of the same W, if given):
+        (x, Ritz values, the result's Krylov space), or (None, None, None) if it did not
+        converge."""
+        res = gmres(W, rhs.ravel(), self.c.krylov_rtol, KRYLOV_MAX_IT, space=space)
         self.system.krylov_iterations += res.iterations
         if not res.converged:
             self.krylov_failed += 1
-            return None, None
-        return res.x.reshape(shape), res.ritz
+            return None, None, None
+        return res.x.reshape(shape), res.ritz, res.space
 
     def _w_factor(self, F0):
         """The unit vectors of the factor W's products solve with: N at the start F0, or at the
@@ -164,7 +167,7 @@ class ROS2(Heun):
                 lin = sysm.linearised(F0)
             W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
             try:
-                k1, ritz = self._stage(W, F0.ds, s.shape)
+                k1, ritz, space = self._stage(W, F0.ds, s.shape)
                 if k1 is None:
                     raise SingularOperator("ROS2 stage 1: GMRES did not converge")
                 # growth: mu = 1 - g h lambda < 1 (see the module)
@@ -179,7 +182,8 @@ class ROS2(Heun):
                                    guess=F0.tau, max_it=STAGE_MAX_IT)
                 if sysm.ops.loaded_n is not w_n:    # the stage's PCG fell back: W as in stage 1
                     sysm.load(w_n)
-                k2, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape)
+                k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape,
+                                       space if c.krylov_recycle else None)
                 if k2 is None:
                     raise SingularOperator("ROS2 stage 2: GMRES did not converge")
             except SingularOperator:
