@@ -168,6 +168,8 @@ class ROS2(Heun):
             W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
             try:
                 k1, ritz, space = self._stage(W, F0.ds, s.shape)
+                if not c.krylov_recycle:
+                    space = None                    # (its basis: m vectors of the state's size)
                 if k1 is None:
                     raise SingularOperator("ROS2 stage 1: GMRES did not converge")
                 # growth: mu = 1 - g h lambda < 1 (see the module)
@@ -182,8 +184,8 @@ class ROS2(Heun):
                                    guess=F0.tau, max_it=STAGE_MAX_IT)
                 if sysm.ops.loaded_n is not w_n:    # the stage's PCG fell back: W as in stage 1
                     sysm.load(w_n)
-                k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape,
-                                       space if c.krylov_recycle else None)
+                k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape, space)
+                space = None
                 if k2 is None:
                     raise SingularOperator("ROS2 stage 2: GMRES did not converge")
             except SingularOperator:
