@@ -462,8 +462,12 @@ def network_integrators_section(d):
                 "factorisation costs ~15 solves at this size and a predictor's PCG needs ~7 "
                 f"iterations) and RKC2 {100 * (1 - rs['loop_seconds'] / rk['loop_seconds']):.0f} % "
                 "faster.  Neither gets near the issue's 90 s target for this run."]
-    out += ["", f"Measured {', '.join(sorted({r['date'] for r in d['records']}))}; load average at the "
-            f"start {', '.join(str([round(x, 1) for x in r['load_start']]) for r in d['records'])} "
+    dates = sorted({row.get("date", r["date"])[:10] for r in d["records"] for row in r["rows"]})
+    out += ["", f"Measured on {', '.join(dates)} (each row's date and the load of its record are "
+            "in the JSON; the rows of 2026-12-06 ran beside two long jobs on the two cores, so "
+            "their loop times are inflated: compare the counts and the CPU column); load average "
+            f"at the start of the latest run of each record "
+            f"{', '.join(str([round(x, 1) for x in r['load_start']]) for r in d['records'])} "
             f"(other jobs at nice 19).", ""]
     return out
 
