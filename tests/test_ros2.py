@@ -224,14 +224,8 @@ def test_two_ranks_equal_one_rank(comm, mpi_tmp_path):
     comm.barrier()
 
 
-@pytest.mark.parametrize("solver", ['preset = "direct"', 'preset = "deflated"'])
-def test_ros2_network_with_each_force_solver(mpi_tmp_path, comm, solver):
-    """A small network toward jamming and back with ROS2 on both legs, with the direct
-    factor and with the deflated CG (no factor: the products solve by CG; the projected
-    end's force is a plain solve): rods rigid, the sigma identity, the growth bound on the
-    reversed leg."""
-    path = str(mpi_tmp_path / f"net_{solver.split()[-1].strip(chr(34))}.h5")
-    text = f"""
+# a small network toward jamming with ROS2: {legs} more legs, {more} more keys (after [integrator])
+NETWORK = """
 seed = 7
 [model]
 name = "network"
@@ -240,17 +234,27 @@ z = 3.8
 [[protocol.leg]]
 direction = "forward"
 sigma_above = 1e3
-[[protocol.leg]]
-direction = "reverse"
-sigma_below = 20
-strain = 0.05
-[integrator]
-method = "ros2"
-[solver]
-{solver}
+{legs}
 [output]
 path = "{path}"
+[integrator]
+method = "ros2"
+{more}
 """
+REVERSE_LEG = """[[protocol.leg]]
+direction = "reverse"
+sigma_below = 20
+strain = 0.05"""
+
+
+@pytest.mark.parametrize("solver", ['preset = "direct"', 'preset = "deflated"'])
+def test_ros2_network_with_each_force_solver(mpi_tmp_path, comm, solver):
+    """A small network toward jamming and back with ROS2 on both legs, with the direct
+    factor and with the deflated CG (no factor: the products solve by CG; the projected
+    end's force is a plain solve): rods rigid, the sigma identity, the growth bound on the
+    reversed leg."""
+    path = str(mpi_tmp_path / f"net_{solver.split()[-1].strip(chr(34))}.h5")
+    text = NETWORK.format(path=path, legs=REVERSE_LEG, more=f"[solver]\n{solver}")
     assert run_scene(load_scene(text)) == "complete"
     comm.barrier()
     with h5py.File(path, "r") as f:
@@ -269,21 +273,7 @@ def test_ros2_krylov_recycle_on_a_network(mpi_tmp_path, comm):
     out = {}
     for recycle in ("false", "true"):
         path = str(mpi_tmp_path / f"recycle_{recycle}.h5")
-        text = f"""
-seed = 7
-[model]
-name = "network"
-N = 128
-z = 3.8
-[[protocol.leg]]
-direction = "forward"
-sigma_above = 1e3
-[integrator]
-method = "ros2"
-krylov_recycle = {recycle}
-[output]
-path = "{path}"
-"""
+        text = NETWORK.format(path=path, legs="", more=f"krylov_recycle = {recycle}")
         assert run_scene(load_scene(text)) == "complete"
         comm.barrier()
         with h5py.File(path, "r") as f:
