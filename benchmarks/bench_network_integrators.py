@@ -72,14 +72,11 @@ SPLIT_CASES = {
     "ros2_fast_heun_stages": ('method = "ros2"\ntol = 0.2', 1e6, 'method = "heun", stage_rtol = 1e-8'),
     "ros2_fastd_heun": ('method = "ros2"\ntol = 0.2\nmax_displacement = 0.2', 1e6,
                         'method = "heun", tol = 0.2, max_displacement = 0.2'),
-    # the second stage from the first one's Krylov space (integrator.krylov_recycle)
-    "ros2_heun_recycle": ('method = "ros2"\ntol = 0.05\nkrylov_recycle = true', 1e6, 'method = "heun"'),
-    "ros2_fast_heun_recycle": ('method = "ros2"\ntol = 0.2\nkrylov_recycle = true', 1e6,
-                               'method = "heun"'),
-    "ros2_fastd_heun_recycle": ('method = "ros2"\ntol = 0.2\nmax_displacement = 0.2\n'
-                                'krylov_recycle = true', 1e6,
-                                'method = "heun", tol = 0.2, max_displacement = 0.2'),
 }
+# the same with the second stage from the first one's Krylov space (integrator.krylov_recycle)
+for _name in ("ros2_heun", "ros2_fast_heun", "ros2_fastd_heun"):
+    _scene, _split, _near = SPLIT_CASES[_name]
+    SPLIT_CASES[f"{_name}_recycle"] = (_scene + "\nkrylov_recycle = true", _split, _near)
 for _name, (_scene, _split, _near) in SPLIT_CASES.items():
     CASES[_name] = f"{_scene}; to sigma = {_split:g}, then {_near}".replace("\n", "; ")
 # the reversed leg seeded: perturb = ETA a0 at the turn with perturb_seed k (the leg's keys),

@@ -70,7 +70,8 @@ def test_gmres_from_another_systems_krylov_space():
     A = (Q * np.geomspace(1.0, 1e3, n)) @ Q.T + np.triu(rng.standard_normal((n, n)), 1) / n
     op = lambda x: A @ x                                              # noqa: E731
     b1 = rng.standard_normal(n)
-    first = gmres(op, b1, 1e-8, 200)
+    first = gmres(op, b1, 1e-8, 200, keep_space=True)
+    assert gmres(op, b1, 1e-8, 200).space is None              # only when asked
     Qk, H = first.space
     assert Qk.shape == (first.iterations + 1, n) and H.shape == (first.iterations + 1, first.iterations)
     np.testing.assert_allclose(A @ Qk[:-1].T, Qk.T @ H, atol=1e-9 * np.abs(A).max())

@@ -4,8 +4,8 @@ Every rank holds the whole vector and applies the same operator (whose solves wi
 collective), so every rank computes the same numbers in the same order: the iteration is
 deterministic and rank-count independent to the round-off of the operator.
 
-    gmres(A, b, rtol, max_it, space=None) -> KrylovResult(x, iterations, residual, converged,
-                                                          ritz, space)
+    gmres(A, b, rtol, max_it, space=None, keep_space=False)
+        -> KrylovResult(x, iterations, residual, converged, ritz, space)
 
 Arnoldi with modified Gram-Schmidt, Givens rotations on the Hessenberg matrix, no restart
 (the stage equations converge in tens of iterations), x0 = 0; converged when the
@@ -14,8 +14,8 @@ is not recomputed (one more operator application): the caller's error control se
 effect of an inexact stage through its own estimate.
 
 A second system with the same operator can start from the first one's Krylov space
-(``space=`` the first result's ``space``: its orthonormal basis Q and Hessenberg matrix H with
-A Q[:m] = Q[:m+1] H, by construction): x0 = Q[:m] y with y minimising |b - Q H y| (no product
+(``space=`` the first result's ``space``, returned with ``keep_space``: its orthonormal basis
+Q and Hessenberg matrix H with A Q[:m] = Q[:m+1] H, by construction): x0 = Q[:m] y with y minimising |b - Q H y| (no product
 with A), then GMRES on the residual to the same |b - A x| <= rtol |b|; ``iterations`` counts
 the new products only.  ROS2's two stage equations share W (integrator.krylov_recycle).
 """
@@ -33,31 +33,32 @@ class KrylovResult:
     residual: float      # |b - A x| / |b| (the recursive estimate)
     converged: bool
     ritz: np.ndarray = None   # eigenvalues of the Hessenberg matrix (complex)
-    space: tuple = None       # (Q (m+1, n), H (m+1, m)) with A Q[:m] = Q[:m+1] H, or None
+    space: tuple = None       # keep_space: (Q (m+1, n), H (m+1, m)) with A Q[:m] = Q[:m+1] H
 
 
-def _recycled(space, b: np.ndarray, nb: float):
+def _recycled(space, b: np.ndarray):
     """x0 in span Q[:m] minimising |b - A x0| through A Q[:m] = Q[:m+1] H; (x0, b - A x0)."""
     Q, H = space
     y = np.linalg.lstsq(H, Q @ b, rcond=None)[0]
     return y @ Q[:-1], b - (H @ y) @ Q
 
 
-def gmres(A, b: np.ndarray, rtol: float, max_it: int, space: tuple | None = None) -> KrylovResult:
+def gmres(A, b: np.ndarray, rtol: float, max_it: int, space: tuple | None = None,
+          keep_space: bool = False) -> KrylovResult:
     """Solve A x = b (A: a function of a 1-D array) to the relative residual ``rtol``;
-    ``space``: another system's Krylov space of the same A to start from (the module)."""
+    ``space``: another system's Krylov space of the same A to start from; ``keep_space``:
+    return this one's (the module)."""
     nb = float(np.linalg.norm(b))
     if nb == 0.0 or not np.isfinite(nb):
         return KrylovResult(np.zeros_like(b), 0, 0.0 if nb == 0.0 else np.inf, nb == 0.0)
     if space is not None and space[1].shape[1] > 0:
-        x0, r = _recycled(space, b, nb)
+        x0, r = _recycled(space, b)
         nr = float(np.linalg.norm(r))
         if nr <= rtol * nb:
             return KrylovResult(x0, 0, nr / nb, True)
         res = gmres(A, r, rtol * nb / nr, max_it)
         res.x = res.x + x0
         res.residual *= nr / nb
-        res.space = None
         return res
     Q = np.empty((max_it + 1, b.size))
     Q[0] = b / nb
@@ -97,4 +98,4 @@ def gmres(A, b: np.ndarray, rtol: float, max_it: int, space: tuple | None = None
     y = np.linalg.solve(np.triu(H[:m, :m]), g[:m])
     x = y @ Q[:m]
     return KrylovResult(x, m, res, bool(res <= rtol), np.linalg.eigvals(Hraw[:m, :m]),
-                        (Q[:m + 1], Hraw[:m + 1, :m]))
+                        (Q[:m + 1], Hraw[:m + 1, :m]) if keep_space else None)

@@ -103,11 +103,12 @@ class ROS2(Heun):
         dg = super().bound(F, dg)
         return min(dg, 0.9 * GROWTH_MAX / self.rate_plus) if self.rate_plus > 0 else dg
 
-    def _stage(self, W, rhs: np.ndarray, shape, space=None):
+    def _stage(self, W, rhs: np.ndarray, shape, space=None, keep_space=False):
         """GMRES on W x = rhs (from the Krylov ``space`` of the same W, if given):
-        (x, Ritz values, the result's Krylov space), or (None, None, None) if it did not
-        converge."""
-        res = gmres(W, rhs.ravel(), self.c.krylov_rtol, KRYLOV_MAX_IT, space=space)
+        (x, Ritz values, its own Krylov space if ``keep_space``), or (None, None, None) if it
+        did not converge."""
+        res = gmres(W, rhs.ravel(), self.c.krylov_rtol, KRYLOV_MAX_IT, space=space,
+                    keep_space=keep_space)
         self.system.krylov_iterations += res.iterations
         if not res.converged:
             self.krylov_failed += 1
@@ -167,9 +168,7 @@ class ROS2(Heun):
                 lin = sysm.linearised(F0)
             W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
             try:
-                k1, ritz, space = self._stage(W, F0.ds, s.shape)
-                if not c.krylov_recycle:
-                    space = None                    # (its basis: m vectors of the state's size)
+                k1, ritz, space = self._stage(W, F0.ds, s.shape, keep_space=c.krylov_recycle)
                 if k1 is None:
                     raise SingularOperator("ROS2 stage 1: GMRES did not converge")
                 # growth: mu = 1 - g h lambda < 1 (see the module)
@@ -185,7 +184,7 @@ class ROS2(Heun):
                 if sysm.ops.loaded_n is not w_n:    # the stage's PCG fell back: W as in stage 1
                     sysm.load(w_n)
                 k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape, space)
-                space = None
+                space = None                        # m vectors of the state's size: not kept
                 if k2 is None:
                     raise SingularOperator("ROS2 stage 2: GMRES did not converge")
             except SingularOperator:
