@@ -82,6 +82,10 @@ def test_gmres_from_another_systems_krylov_space():
         assert r.converged and np.linalg.norm(A @ r.x - b2) <= 1.01e-8 * np.linalg.norm(b2)
     assert again.iterations < plain.iterations
     np.testing.assert_allclose(again.x, plain.x, rtol=0, atol=1e-6 * np.linalg.norm(plain.x))
+    kept = gmres(op, b2, 1e-8, 200, space=first.space, keep_space=True)   # the residual's space
+    assert again.space is None and kept.iterations == again.iterations
+    Qr, Hr = kept.space
+    np.testing.assert_allclose(A @ Qr[:-1].T, Qr.T @ Hr, atol=1e-9 * np.abs(A).max())
     inside = gmres(op, 3.0 * b1, 1e-8, 200, space=first.space)       # in the space already
     assert inside.converged and inside.iterations == 0
     np.testing.assert_allclose(inside.x, 3.0 * first.x, rtol=0, atol=1e-9 * np.linalg.norm(first.x))

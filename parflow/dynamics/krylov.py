@@ -15,9 +15,10 @@ effect of an inexact stage through its own estimate.
 
 A second system with the same operator can start from the first one's Krylov space
 (``space=`` the first result's ``space``, returned with ``keep_space``: its orthonormal basis
-Q and Hessenberg matrix H with A Q[:m] = Q[:m+1] H, by construction): x0 = Q[:m] y with y minimising |b - Q H y| (no product
-with A), then GMRES on the residual to the same |b - A x| <= rtol |b|; ``iterations`` counts
-the new products only.  ROS2's two stage equations share W (integrator.krylov_recycle).
+Q and Hessenberg matrix H with A Q[:m] = Q[:m+1] H, by construction): x0 = Q[:m] y with y
+minimising |b - Q H y| (no product with A), then GMRES on the residual to the same
+|b - A x| <= rtol |b|; ``iterations`` counts the new products only, and ``keep_space``
+returns the residual system's space (of the same A).  ROS2's two stage equations share W (integrator.krylov_recycle).
 """
 from __future__ import annotations
 
@@ -56,7 +57,7 @@ def gmres(A, b: np.ndarray, rtol: float, max_it: int, space: tuple | None = None
         nr = float(np.linalg.norm(r))
         if nr <= rtol * nb:
             return KrylovResult(x0, 0, nr / nb, True)
-        res = gmres(A, r, rtol * nb / nr, max_it)
+        res = gmres(A, r, rtol * nb / nr, max_it, keep_space=keep_space)
         res.x = res.x + x0
         res.residual *= nr / nb
         return res
