@@ -18,7 +18,8 @@ A second system with the same operator can start from the first one's Krylov spa
 Q and Hessenberg matrix H with A Q[:m] = Q[:m+1] H, by construction): x0 = Q[:m] y with y
 minimising |b - Q H y| (no product with A), then GMRES on the residual to the same
 |b - A x| <= rtol |b|; ``iterations`` counts the new products only, and ``keep_space``
-returns the residual system's space (of the same A).  ROS2's two stage equations share W (integrator.krylov_recycle).
+returns the residual system's space (of the same A).  ROS2's two stage equations share W
+(integrator.krylov_recycle).
 """
 from __future__ import annotations
 
