@@ -11,8 +11,11 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
+from parflow.algebra import operators
 from parflow.algebra.deflated import DeflatedSolver
+from parflow.algebra.operators import extended_precision_available
 from parflow.algebra.solvers import SolveError
+from parflow.dynamics import bonded
 from parflow.dynamics.bonded import BondedSystem
 from parflow.run import Run, setup_logging
 from parflow.scene import load_scene
@@ -47,13 +50,19 @@ def _run(path, sigma, preset="direct", snap=0, omega=0, strain=10.0):
 
 
 @pytest.fixture(scope="module")
-def jammed(tmp_path_factory):
-    """A 128-node network sheared (direct solve) to sigma >= 1e6: its state at the end."""
-    from parflow.models import get_model      # noqa: PLC0415  (only for this fixture)
+def jam_run(tmp_path_factory):
+    """A 128-node network sheared (direct solve) to sigma >= 1e6: (run file, scene)."""
     comm = PETSc.COMM_WORLD.tompi4py()
     folder = comm.bcast(str(tmp_path_factory.mktemp("deflated")) if comm.rank == 0 else None)
     path = folder + "/jam.h5"
-    scene = _run(path, 1e6, snap=1)
+    return path, _run(path, 1e6, snap=1)
+
+
+@pytest.fixture(scope="module")
+def jammed(jam_run):
+    """The state at the end of ``jam_run`` (sigma >= 1e6)."""
+    from parflow.models import get_model      # noqa: PLC0415  (only for this fixture)
+    path, scene = jam_run
     with h5py.File(path, "r") as f:
         last = sorted(f["snapshots"])[-1]
         s, gamma = f["snapshots"][last]["s"][()], float(f["snapshots"][last].attrs["gamma"])
@@ -90,8 +99,9 @@ def exact_tau(state, n, b):
 
 def test_deflated_against_direct_near_jamming(jammed):
     """At sigma >= 1e6 (lambda_1 ~ 2e-8, cond ~ 3e8) the deflated solve gives tau to 1e-10 of
-    the exact solution, and the sigma identity to 1e-9; it agrees with the direct solve to
-    the direct solve's own error (~1e-9 here: the rounding of N's entries)."""
+    the exact solution, and the sigma identity to 1e-9; the direct solve (with its correction
+    in extended precision) to 1e-12; they agree to
+    the direct solve's own error."""
     st = jammed
     direct, defl = _system(st, "direct"), _system(st, "deflated")
     try:
@@ -105,7 +115,8 @@ def test_deflated_against_direct_near_jamming(jammed):
         err = np.linalg.norm(F.tau - ref) / np.linalg.norm(ref)
         err_direct = np.linalg.norm(Fd.tau - ref) / np.linalg.norm(ref)
         assert err <= 1e-10, err
-        assert err_direct <= 1e-8, err_direct
+        # the direct solve corrected in extended precision (bonded.IDENTITY_RTOL)
+        assert err_direct <= 1e-12, err_direct
         d_tau = np.linalg.norm(F.tau - Fd.tau) / np.linalg.norm(Fd.tau)
         d_V = np.linalg.norm(F.V_na - Fd.V_na) / np.linalg.norm(Fd.V_na)
         assert min(d_tau, d_V) <= err + err_direct + 1e-12, (d_tau, d_V, err, err_direct)
@@ -207,3 +218,100 @@ def test_short_run_with_the_preset(mpi_tmp_path):
         assert np.max(ts["backward_error"][()]) <= 1e-14
         om = ts["omega_min"][()]
         assert np.all(np.isfinite(om[om > 0])) and np.any(om > 0)
+
+
+# --- the direct solve near jamming: its correction in extended precision ----------------
+
+needs_long_double = pytest.mark.skipif(not extended_precision_available(),
+                                       reason="numpy's long double is double on this platform")
+
+
+@needs_long_double
+def test_extended_residual_against_a_dense_one(jammed):
+    """RigidityOperators.residual_extended against -b - S S^T tau with a dense long-double S,
+    at the direct solve's tau: the residual is round-off there (~1e-16 ||N|| ||tau||), and the
+    two agree to 1e-3 of it -- in double it would be noise of its own size."""
+    st = jammed
+    sysm = _system(st, "direct")
+    try:
+        F = sysm.evaluate(st.s, st.gamma)
+        i, j, nc = st.bonds.i, st.bonds.j, len(st.bonds)
+        S = np.zeros((nc, st.d * st.n), dtype=np.longdouble)
+        rows = np.arange(nc)
+        for c in range(st.d):
+            S[rows, st.d * i + c] -= F.n[:, c]
+            S[rows, st.d * j + c] += F.n[:, c]
+        dense = (-np.asarray(F.b, np.longdouble) - S @ (S.T @ np.asarray(F.tau, np.longdouble)))
+        r = sysm.ops.residual_extended(F.tau, F.b, F.n)
+        scale = np.linalg.norm(F.tau) * sysm.ops.norm_bound
+        assert np.linalg.norm(r) <= 1e-14 * scale            # a solved system: round-off
+        assert np.linalg.norm(r - dense.astype(float)) <= 1e-3 * np.linalg.norm(r)
+        r_double = -F.b - sysm.ops.matvec_at(F.n)(F.tau)
+        assert np.linalg.norm(r_double - dense.astype(float)) > 1e-2 * np.linalg.norm(r)
+    finally:
+        sysm.destroy()
+
+
+@needs_long_double
+def test_direct_solve_corrected_to_the_exact_forces(jammed, monkeypatch):
+    """At sigma >= 1e6 the factor alone leaves tau wrong by ~1e-9 along the soft mode (the
+    sigma identity shows it); the correction from the extended residual brings tau to 1e-12
+    of the exact solution and the identity below IDENTITY_RTOL -- on the loaded factor, and on
+    a nearby configuration's factor (the reused-factor PCG of a step's last force)."""
+    st = jammed
+    sysm = _system(st, "direct")
+    try:
+        monkeypatch.setattr(bonded, "IDENTITY_RTOL", np.inf)     # the factor alone
+        F0 = sysm.evaluate(st.s, st.gamma)
+        monkeypatch.undo()
+        ref = exact_tau(st, F0.n, F0.b)
+        err0 = np.linalg.norm(F0.tau - ref) / np.linalg.norm(ref)
+        assert F0.sigma_mismatch > 10 * bonded.IDENTITY_RTOL and err0 > 1e-11   # what is fixed
+        F = sysm.evaluate(st.s, st.gamma)
+        assert sysm.n_identity_refined >= 1
+        assert F.sigma_mismatch <= bonded.IDENTITY_RTOL
+        assert np.linalg.norm(F.tau - ref) <= 1e-12 * np.linalg.norm(ref)
+        assert abs(F.sigma - F0.sigma) <= 10 * err0 * F0.sigma
+
+        # the factor of a configuration a strain 1e-5 / sigma away, by PCG (one reused
+        # solve; at 1e-3 / sigma this small network's PCG misses REUSE_BERR and factorises)
+        dg = 1e-5 / F.sigma
+        s2, g2 = st.s + dg * F.ds, st.gamma + dg
+        G_ref = sysm.evaluate(s2, g2)                 # factorised at (s2, g2), corrected
+        sysm.load(F.n)
+        sysm.reuse_factor = True
+        n_ref, reused = sysm.n_identity_refined, sysm.n_reused
+        G = sysm.evaluate(s2, g2, reuse=True)
+        assert sysm.ops.values_stale and sysm.n_reused == reused + 1
+        assert sysm.n_identity_refined > n_ref
+        assert G.sigma_mismatch <= bonded.IDENTITY_RTOL
+        assert np.linalg.norm(G.tau - G_ref.tau) <= 1e-12 * np.linalg.norm(G_ref.tau)
+    finally:
+        sysm.destroy()
+
+
+def test_without_long_double_the_factor_alone(jammed, monkeypatch):
+    """Where long double is double the correction is skipped, not faked: the force is the
+    factor's, and the identity shows its error."""
+    st = jammed
+    monkeypatch.setattr(operators, "extended_precision_available", lambda: False)
+    sysm = _system(st, "direct")
+    try:
+        F = sysm.evaluate(st.s, st.gamma)
+        assert sysm.ops.residual_extended(F.tau, F.b) is None
+        assert sysm.n_identity_refined == 0
+        assert F.sigma_mismatch > bonded.IDENTITY_RTOL
+    finally:
+        sysm.destroy()
+
+
+@needs_long_double
+def test_direct_run_keeps_the_identity(jam_run):
+    """The whole run to sigma >= 1e6 with the direct solve: identity <= IDENTITY_RTOL at every
+    step, the correction counted in the run file."""
+    path, _ = jam_run
+    with h5py.File(path, "r") as f:
+        ts = f["timeseries"]
+        assert np.max(ts["sigma"][()]) >= 1e6
+        assert np.max(ts["sigma_mismatch"][()]) <= bonded.IDENTITY_RTOL
+        assert int(f.attrs["n_identity_refined"]) > 0

@@ -55,6 +55,7 @@ class RigidityOperators:
         self._n, self._s_fresh = None, False
         self.values_stale = False
         self.loaded_n = None       # the unit vectors whose values N holds (and its factor)
+        self._scatter_ld = None    # S^T's node sums in order (residual_extended)
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
         comp = np.arange(d)
@@ -177,6 +178,42 @@ class RigidityOperators:
                 np.bincount(self._i_all, f, self.n_nodes)
         return out
 
+    def residual_extended(self, tau: np.ndarray, b: np.ndarray,
+                          n: np.ndarray | None = None) -> np.ndarray | None:
+        """r = -b - S S^T tau (replicated, length Nc) for the unit vectors n (default: the
+        current ones), with every product and sum in ``np.longdouble`` and r rounded to
+        double at the end -- None where long double is no wider than double.
+
+        Near jamming the residual of a solve computed in double is round-off, ~eps ||N||
+        ||tau||, and its component along the softest mode u_1 makes the correction from it
+        wrong by ~eps cond(N) along u_1 -- the part of tau that carries sigma (docs/solvers.md,
+        "The sigma identity near jamming").  Here the cancellation between b and S S^T tau
+        happens at eps_ld ~ 1e-19 (x86-64's 80-bit format; IEEE quad on aarch64), so one
+        correction with the factor of N brings tau to what double can hold.  The product is
+        taken with S S^T of the double unit vectors themselves -- the operator whose
+        identities (V_na = S^T tau, sigma = |V_na|^2 / Omega = -<tau|b> / Omega) are checked
+        -- not with the rounded entries of N."""
+        if not extended_precision_available():
+            return None
+        n = self._n if n is None else n
+        if self._scatter_ld is None:    # built on first use: only runs near jamming need it
+            ends = np.concatenate([self._j_all, self._i_all])
+            order = np.argsort(ends, kind="stable")
+            nodes, starts = np.unique(ends[order], return_index=True)
+            self._scatter_ld = (order, nodes, starts)
+        order, nodes, starts = self._scatter_ld
+        i, j = self._i_all, self._j_all
+        t = np.asarray(tau, dtype=np.longdouble)
+        w = np.zeros(self.nc, dtype=np.longdouble)
+        u = np.zeros(self.n_nodes, dtype=np.longdouble)
+        for c in range(self.d):
+            nc_ = n[:, c].astype(np.longdouble)
+            f = t * nc_
+            # (S^T tau)_c = B^T (tau n_c): + at j, - at i, summed per node
+            u[nodes] = np.add.reduceat(np.concatenate([f, -f])[order], starts)
+            w += nc_ * (u[j] - u[i])
+        return (-np.asarray(b, dtype=np.longdouble) - w).astype(float)
+
     @property
     def norm_bound(self) -> float:
         """An upper bound of ||N||_inf, valid for any unit vectors: max_a sum_b |c_ab|."""
@@ -207,6 +244,12 @@ class RigidityOperators:
     def destroy(self):
         for obj in (self.S, self.N, self.tau, self.rhs, self.force, self._scatter, self._force_all):
             obj.destroy()
+
+
+def extended_precision_available() -> bool:
+    """Whether numpy's long double carries more bits than double (x86-64 Linux: 64-bit
+    mantissa; aarch64 Linux: IEEE quad; not on Windows or Apple silicon, where it is double)."""
+    return bool(np.finfo(np.longdouble).eps < 1e-18)
 
 
 def _mpi_max():

@@ -67,6 +67,15 @@ REUSE_MAX_IT = 25
 # STAGE_MAX_IT iterations, or N(s) is factorised there (and serves the stages that follow).
 STAGE_MAX_IT = 12
 PROJ_RTOL = 1e-8                 # the projection's Newton steps by PCG (project(pcg=True))
+# A force whose sigma identity |sigma - sigma_tb| / sigma is above IDENTITY_RTOL (near
+# jamming: round-off of the solve along the softest mode, ~1e-15 sigma on networks) is
+# corrected from a residual computed in extended precision (RigidityOperators.
+# residual_extended), at most IDENTITY_MAX_REFINE times while each gains 10x; the
+# correction's own solve: the loaded factor applied once (N loaded at s), or PCG on it to
+# IDENTITY_PCG_RTOL (a reused factor).  docs/solvers.md, "The sigma identity near jamming".
+IDENTITY_RTOL = 1e-11
+IDENTITY_MAX_REFINE = 2
+IDENTITY_PCG_RTOL = 1e-6
 # solver.reuse_factor = "auto": on for models that ask for it (a 2D network's factor costs
 # ~20-30 solves at Nc = 1.9e6) from this many rows of N, and with the "direct" preset only
 REUSE_AUTO_MIN_NC = 250_000
@@ -125,6 +134,7 @@ class BondedSystem:
         self.pcg_iterations = 0    # PCG iterations of both kinds
         self.n_refreshed = 0       # forces at a step's start evaluated again (heun.Stall)
         self.n_jvp = 0             # Jacobian-vector products (a solve each; ros2's stages)
+        self.n_identity_refined = 0  # forces corrected in extended precision (IDENTITY_RTOL)
         self.krylov_iterations = 0  # GMRES iterations of ros2's stage equations
         self._pattern = None       # the fixed sparse patterns of linearised() (built on demand)
 
@@ -145,7 +155,7 @@ class BondedSystem:
 
     def evaluate(self, s: np.ndarray, gamma: float, what: str = "force", reuse: bool = False,
                  rtol: float = 0.0, guess: np.ndarray | None = None,
-                 max_it: int | None = None) -> Force:
+                 max_it: int | None = None, intermediate: bool = False) -> Force:
         """Solve N tau = -b at configuration (s, gamma); leaves N loaded at (s, gamma) --
         except with ``reuse`` (and reuse_factor on): then N(s) tau = -b is solved by PCG
         preconditioned by the factor already loaded (a nearby configuration's, e.g. the
@@ -154,7 +164,10 @@ class BondedSystem:
         ``rtol`` > 0 (an intermediate solve of a step): the same PCG to the relative
         energy-norm error ``rtol`` (STAGE_MAX_IT iterations, then a factorisation), started
         from ``guess`` (tau of a nearby configuration, e.g. the previous stage's); ``max_it``
-        replaces STAGE_MAX_IT."""
+        replaces STAGE_MAX_IT.  A force whose sigma identity is off by more than IDENTITY_RTOL
+        is corrected in extended precision (:meth:`_refine_identity`) -- unless it is
+        ``intermediate`` (a stage of a step: not recorded, and its tau's ~1e-9 error along the
+        soft mode is far below the step's own) or solved only to ``rtol``."""
         h, r, ell, n, b = self.geometry(s, gamma)
         tau = None
         if rtol > 0 and self.n_factor > 0 and self.stage_pcg_possible:
@@ -169,7 +182,39 @@ class BondedSystem:
             tau = ops.gather(ops.tau)
         else:
             self.ops.set_unit_vectors(n)
-        return self._force(gamma, h, r, ell, n, b, tau, info)
+        F = self._force(gamma, h, r, ell, n, b, tau, info)
+        if not intermediate and rtol == 0 and F.sigma_mismatch > IDENTITY_RTOL \
+                and self.stage_pcg_possible:
+            F = self._refine_identity(F, what)
+        return F
+
+    def _refine_identity(self, F: Force, what: str) -> Force:
+        """F with tau corrected from residuals in extended precision until the sigma
+        identity is within IDENTITY_RTOL (see there); F itself where that gains nothing or
+        long double is no wider than double.  The correction solves N(s) x = r with the
+        factor: loaded at s (applied once: x needs only a few correct digits, its size is the
+        identity's error), or of a nearby configuration (PCG on it to IDENTITY_PCG_RTOL)."""
+        best = F
+        for _ in range(IDENTITY_MAX_REFINE):
+            r = self.ops.residual_extended(best.tau, best.b, best.n)
+            if r is None:
+                return best
+            if self.ops.values_stale:
+                x, _ = self._solve_reused(best.n, r, what + " (identity)",
+                                          rtol=IDENTITY_PCG_RTOL, tally=False)
+                if x is None:
+                    return best
+            else:
+                x = self._apply(r, what + " (identity)")
+            G = self._force(best.gamma, best.h, best.r, best.ell, best.n, best.b,
+                            best.tau + x, best.info)
+            if not G.sigma_mismatch * 10 <= best.sigma_mismatch:
+                return best
+            best = G
+            self.n_identity_refined += 1
+            if best.sigma_mismatch <= IDENTITY_RTOL:
+                break
+        return best
 
     def evaluate_reusing(self, s: np.ndarray, gamma: float, what: str = "force") -> Force:
         """:meth:`evaluate` with the solve by PCG on the factor loaded (to REUSE_BERR, or N(s)
@@ -207,12 +252,14 @@ class BondedSystem:
         return hasattr(self.tau_solver, "apply")
 
     def _solve_reused(self, n: np.ndarray, rhs: np.ndarray, what: str, rtol: float = 0.0,
-                      guess: np.ndarray | None = None, max_it: int | None = None):
+                      guess: np.ndarray | None = None, max_it: int | None = None,
+                      tally: bool = True):
         """PCG for N(n) x = rhs, preconditioned by the loaded factor; (x, SolveInfo) when the
         backward error reaches REUSE_BERR (``rtol`` = 0) or the estimated relative error in
         the energy norm reaches ``rtol``, (None, None) otherwise.  For the backward error the
         true residual is recomputed every iteration (it is what that test looks at); the
-        energy-norm test uses the recursive one."""
+        energy-norm test uses the recursive one.  ``tally`` False: the solve is not counted
+        as a reused or stage solve (its iterations are, in pcg_iterations)."""
         A = self.ops.matvec_at(n)
         nb = float(np.linalg.norm(rhs))
         norm_n = self.tau_solver.norm_bound
@@ -250,11 +297,13 @@ class BondedSystem:
             rz_new = float(r @ z)
             # ||e||_N^2 ~ r.M^-1 r against ||x||_N^2 = x.N x ~ x.rhs
             if rtol > 0 and abs(rz_new) <= rtol * rtol * abs(float(x @ rhs)):
-                self.n_stage_pcg += 1
+                self.n_stage_pcg += tally
                 return x, SolveInfo(0, nr / nb if nb > 0 else nr, berr, it)
             p = z + (rz_new / rz) * p
             rz = rz_new
-        if rtol > 0:
+        if not tally:
+            pass
+        elif rtol > 0:
             self.n_stage_failed += 1
         else:
             self.n_reuse_failed += 1

@@ -183,6 +183,7 @@ class BondedEngine:
                     n_stage_failed=sysm.n_stage_failed, pcg_iterations=sysm.pcg_iterations,
                     n_suspect_solves=getattr(sysm.tau_solver, "n_suspect", 0),
                     n_force_refreshed=sysm.n_refreshed, krylov_iterations=sysm.krylov_iterations,
+                    n_identity_refined=sysm.n_identity_refined,
                     n_factor_rebuilt=getattr(sysm.tau_solver, "n_rebuilt", 0),
                     # trial steps rejected, by cause, where the integrator counts them (ros2)
                     **{f"rejected_{k}": int(v)

@@ -203,7 +203,7 @@ class Heun:
             h = direction * dg
             try:
                 F1 = sysm.evaluate(s + h * k0, gamma + h, what="predictor", rtol=c.stage_rtol,
-                                   guess=F0.tau)
+                                   guess=F0.tau, intermediate=True)
             except SingularOperator:
                 rejected += 1
                 dg *= 0.25

@@ -115,7 +115,7 @@ class RKC(Heun):
         PCG of an intermediate solve, stage_rtol > 0)."""
         self.evaluations += 1
         return self.system.evaluate(s, gamma, what=what, rtol=self.c.stage_rtol,
-                                    guess=None if near is None else near.tau)
+                                    guess=None if near is None else near.tau, intermediate=True)
 
     def spectral_radius(self, s, gamma, F0) -> float:
         """|lambda_max| of dF/ds at (s, gamma) by a nonlinear power iteration on finite

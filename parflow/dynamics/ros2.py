@@ -180,7 +180,7 @@ class ROS2(Heun):
                     dg *= 0.9 * GROWTH_MAX / hl
                     continue
                 F1 = sysm.evaluate(s + h * k1, gamma + h, what="ROS2 stage", rtol=stage_rtol,
-                                   guess=F0.tau, max_it=STAGE_MAX_IT)
+                                   guess=F0.tau, max_it=STAGE_MAX_IT, intermediate=True)
                 if sysm.ops.loaded_n is not w_n:    # the stage's PCG fell back: W as in stage 1
                     sysm.load(w_n)
                 k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape, space)
