@@ -12,6 +12,14 @@ from the deflated solve's, the corrections taken, and the wall time of one force
     python benchmarks/bench_identity.py --n 4096            # to sigma = 1e8
     python benchmarks/bench_identity.py --n 40000 --top 1e6
     -> docs/benchmarks/identity.json (one record per N)
+
+--protocol: instead, the network runs the forward-and-back protocol of
+bench_network_shear.py (forward to sigma = 1e6, back to 10; default presets, one process)
+twice, with the correction off (IDENTITY_RTOL lifted) and on, alternately in the same
+conditions: wall time, steps, factorisations, corrections, the largest sigma identity, and
+how far the two runs' sigma(gamma) and gamma at sigma = 1e6 differ.
+    python benchmarks/bench_identity.py --n 40000 --protocol
+    -> docs/benchmarks/identity.json, "protocol" records
 """
 from __future__ import annotations
 
@@ -36,6 +44,7 @@ from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
 from bench_deflated import SCENE, states  # noqa: E402
+from common import FORWARD_AND_BACK, network_file  # noqa: E402  (benchmarks/common.py)
 
 
 def rel(a, b):
@@ -81,17 +90,81 @@ def at_state(state, s, gamma):
                 seconds_residual=t_res)
 
 
+def protocol_run(folder, n, network, corrected):
+    """One forward-and-back run; the correction off unless ``corrected``."""
+    import h5py  # noqa: PLC0415
+
+    from parflow.run import Run, setup_logging  # noqa: PLC0415
+    path = os.path.join(folder, f"identity_protocol_{'on' if corrected else 'off'}.h5")
+    scene = load_scene(FORWARD_AND_BACK.format(n=n, network=network, path=path, settings=""))
+    setup_logging(PETSc.COMM_WORLD, quiet=True)
+    saved = bonded.IDENTITY_RTOL
+    if not corrected:
+        bonded.IDENTITY_RTOL = np.inf
+    try:
+        t = time.perf_counter()
+        status = Run(scene, PETSc.COMM_WORLD, path, quiet=True).execute()
+        wall = time.perf_counter() - t
+    finally:
+        bonded.IDENTITY_RTOL = saved
+    with h5py.File(path) as f:
+        ts = f["timeseries"]
+        d = {k: ts[k][:] for k in ("gamma", "sigma", "direction", "sigma_mismatch", "rejected")}
+        attrs = {k: int(f.attrs.get(k, 0)) for k in ("n_factorisations", "n_identity_refined")}
+        status = str(f.attrs["status"])
+    fw = d["direction"] > 0
+    return dict(corrected=corrected, status=status, wall_seconds=wall, steps=int(len(d["gamma"]) - 1),
+                forward_steps=int(fw.sum()), rejected=int(d["rejected"].sum()),
+                max_identity=float(np.nanmax(d["sigma_mismatch"])),
+                gamma_1e6=results.crossing(d["gamma"][fw], d["sigma"][fw], 1e6), **attrs), d
+
+
+def protocol(args):
+    folder = args.folder
+    network = network_file(folder, args.n, PETSc.COMM_WORLD)
+    rows, series = [], {}
+    for corrected in (False, True, False, True)[:2 * args.repeat]:
+        row, d = protocol_run(folder, args.n, network, corrected)
+        rows.append(row)
+        series[corrected] = d
+        print(f"correction {'on ' if corrected else 'off'}: {row['status']}, {row['wall_seconds']:.1f} s, "
+              f"{row['steps']} steps ({row['rejected']} rejected), {row['n_factorisations']} "
+              f"factorisations, {row['n_identity_refined']} corrections, identity <= "
+              f"{row['max_identity']:.1e}, gamma(1e6) = {row['gamma_1e6']:.9f}", flush=True)
+    off, on = series[False], series[True]
+    fo, fn = off["direction"] > 0, on["direction"] > 0
+    g = on["gamma"][fn]
+    g = g[(g >= off["gamma"][fo][0]) & (g <= off["gamma"][fo][-1])]
+    err = np.max(np.abs(np.interp(g, off["gamma"][fo], np.log(off["sigma"][fo]))
+                        - np.interp(g, on["gamma"][fn], np.log(on["sigma"][fn]))))
+    p = results.path("identity")
+    old = {}
+    if os.path.exists(p):
+        with open(p) as fh:
+            old = json.load(fh)
+    recs = [r for r in old.get("protocol", []) if r["n"] != args.n]
+    recs.append(dict(n=args.n, date=time.strftime("%Y-%m-%d %H:%M:%S"), load_end=os.getloadavg(),
+                     rows=rows, forward_log_sigma_difference=float(err)))
+    old["protocol"] = sorted(recs, key=lambda r: r["n"])
+    results.write("identity", old)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=4096)
     ap.add_argument("--top", type=float, default=1e8)
     ap.add_argument("--folder", default=os.path.join("out", "bench_deflated"))
+    ap.add_argument("--protocol", action="store_true",
+                    help="the forward-and-back run with the correction off and on")
+    ap.add_argument("--repeat", type=int, default=1, help="--protocol: pairs of runs")
     args = ap.parse_args()
     if PETSc.COMM_WORLD.getSize() > 1:
         sys.exit("bench_identity.py runs on one rank (the solves it compares are serial)")
     if not extended_precision_available():
         sys.exit("numpy's long double is double on this platform: there is no correction to measure")
     os.makedirs(args.folder, exist_ok=True)
+    if args.protocol:
+        return protocol(args)
     S = states(args.folder, args.n, args.top)
     network = os.path.join(args.folder, f"network_N{args.n}.h5")
     scene = load_scene(SCENE.format(n=args.n, network=network, top=args.top, folder=args.folder))
@@ -115,9 +188,9 @@ def main():
     recs.append(dict(n=args.n, nc=len(state.bonds), date=time.strftime("%Y-%m-%d %H:%M:%S"),
                      load_end=os.getloadavg(), identity_rtol=bonded.IDENTITY_RTOL,
                      long_double_eps=float(np.finfo(np.longdouble).eps), rows=rows))
-    results.write("identity", dict(benchmark="the direct force solve near jamming: the factor "
-                                             "alone against the correction in extended precision",
-                                   records=sorted(recs, key=lambda r: r["n"])))
+    old.update(benchmark="the direct force solve near jamming: the factor alone against the "
+                         "correction in extended precision", records=sorted(recs, key=lambda r: r["n"]))
+    results.write("identity", old)
 
 
 if __name__ == "__main__":

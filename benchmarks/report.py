@@ -693,6 +693,22 @@ def identity_section(d):
     out.append("")
     out.append("Measured " + ", ".join(f"{r['date']} (N = {r['n']:,}, load average "
                                        f"{r['load_end'][0]:.1f})" for r in d["records"]) + ".")
+    if d.get("protocol"):
+        out += ["", "The whole forward-and-back run (`--protocol`: `bench_network_shear.py`'s protocol, "
+                "forward to σ = 10⁶ and back to 10, default presets, one process), with the "
+                "correction off and on, one after the other in the same conditions:", "",
+                "| N | correction | status | wall (s) | steps (rejected) | factorisations | corrections | largest σ identity | γ at σ = 10⁶ |",
+                "|---|---|---|---|---|---|---|---|---|"]
+        for rec in d["protocol"]:
+            for r in rec["rows"]:
+                out.append(f"| {rec['n']:,} | {'on' if r['corrected'] else 'off'} | {r['status']} | "
+                           f"{r['wall_seconds']:.1f} | {r['steps']} ({r['rejected']}) | "
+                           f"{r['n_factorisations']} | {r['n_identity_refined']} | "
+                           f"{r['max_identity']:.1e} | {r['gamma_1e6']:.9f} |")
+        out += ["", "; ".join(f"N = {r['n']:,}: measured {r['date']}, load average "
+                              f"{r['load_end'][0]:.1f}, forward branches within "
+                              f"{r['forward_log_sigma_difference']:.1e} in log σ at equal γ"
+                              for r in d["protocol"]) + "."]
     return out + [""]
 
 
