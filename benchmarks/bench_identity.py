@@ -90,6 +90,22 @@ def at_state(state, s, gamma):
                 seconds_residual=t_res)
 
 
+def store(kind: str, record: dict) -> None:
+    """Put ``record`` (with its date and the load) into docs/benchmarks/identity.json under
+    ``kind`` ("records": the states, "protocol": the whole runs), replacing one of the same N."""
+    p = results.path("identity")
+    old = {}
+    if os.path.exists(p):
+        with open(p) as fh:
+            old = json.load(fh)
+    record.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), load_end=os.getloadavg())
+    recs = [r for r in old.get(kind, []) if r["n"] != record["n"]] + [record]
+    old[kind] = sorted(recs, key=lambda r: r["n"])
+    old["benchmark"] = ("the direct force solve near jamming: the factor alone against the "
+                        "correction in extended precision")
+    results.write("identity", old)
+
+
 def protocol_run(folder, n, network, corrected):
     """One forward-and-back run; the correction off unless ``corrected``."""
     import h5py  # noqa: PLC0415
@@ -137,16 +153,7 @@ def protocol(args):
     g = g[(g >= off["gamma"][fo][0]) & (g <= off["gamma"][fo][-1])]
     err = np.max(np.abs(np.interp(g, off["gamma"][fo], np.log(off["sigma"][fo]))
                         - np.interp(g, on["gamma"][fn], np.log(on["sigma"][fn]))))
-    p = results.path("identity")
-    old = {}
-    if os.path.exists(p):
-        with open(p) as fh:
-            old = json.load(fh)
-    recs = [r for r in old.get("protocol", []) if r["n"] != args.n]
-    recs.append(dict(n=args.n, date=time.strftime("%Y-%m-%d %H:%M:%S"), load_end=os.getloadavg(),
-                     rows=rows, forward_log_sigma_difference=float(err)))
-    old["protocol"] = sorted(recs, key=lambda r: r["n"])
-    results.write("identity", old)
+    store("protocol", dict(n=args.n, rows=rows, forward_log_sigma_difference=float(err)))
 
 
 def main():
@@ -179,18 +186,8 @@ def main():
               f"{row['tau_factor_vs_deflated']:.1e}, corrected {row['tau_corrected_vs_deflated']:.1e}"
               f" | {1e3 * row['seconds_factor']:.1f} -> {1e3 * row['seconds_corrected']:.1f} ms "
               f"(residual {1e3 * row['seconds_residual']:.1f} ms)", flush=True)
-    p = results.path("identity")
-    old = {}
-    if os.path.exists(p):
-        with open(p) as fh:
-            old = json.load(fh)
-    recs = [r for r in old.get("records", []) if r["n"] != args.n]
-    recs.append(dict(n=args.n, nc=len(state.bonds), date=time.strftime("%Y-%m-%d %H:%M:%S"),
-                     load_end=os.getloadavg(), identity_rtol=bonded.IDENTITY_RTOL,
-                     long_double_eps=float(np.finfo(np.longdouble).eps), rows=rows))
-    old.update(benchmark="the direct force solve near jamming: the factor alone against the "
-                         "correction in extended precision", records=sorted(recs, key=lambda r: r["n"]))
-    results.write("identity", old)
+    store("records", dict(n=args.n, nc=len(state.bonds), identity_rtol=bonded.IDENTITY_RTOL,
+                          long_double_eps=float(np.finfo(np.longdouble).eps), rows=rows))
 
 
 if __name__ == "__main__":
