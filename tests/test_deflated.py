@@ -315,3 +315,28 @@ def test_direct_run_keeps_the_identity(jam_run):
         assert np.max(ts["sigma"][()]) >= 1e6
         assert np.max(ts["sigma_mismatch"][()]) <= bonded.IDENTITY_RTOL
         assert int(f.attrs["n_identity_refined"]) > 0
+
+
+@needs_long_double
+def test_restart_with_corrections_equals_uninterrupted(jam_run, mpi_tmp_path, comm):
+    """Stopped a few steps before sigma = 1e6 (where every force is corrected) and restarted
+    from the checkpoint (its tau is the corrected one): the same run, bit for bit."""
+    full, _ = jam_run
+    part = str(mpi_tmp_path / "part.h5")
+    with h5py.File(full, "r") as f:
+        n = len(f["timeseries/gamma"]) - 1
+        assert int(f.attrs["n_identity_refined"]) > 0
+        assert f["timeseries/sigma"][n - 5] > 1e5     # where the factor alone is off by ~1e-11+
+    scene = load_scene(SCENE.format(sigma=1e6, preset="direct", path=part, snap=1, omega=0,
+                                    strain=10.0))
+    setup_logging(PETSc.COMM_WORLD, quiet=True)
+    assert Run(scene, PETSc.COMM_WORLD, part, quiet=True, max_steps=n - 5).execute() == "budget"
+    comm.Barrier()
+    assert Run(scene, PETSc.COMM_WORLD, part, quiet=True, restart=True,
+               max_steps=10**6).execute() == "complete"
+    comm.Barrier()
+    with h5py.File(full, "r") as a, h5py.File(part, "r") as b:
+        for q in ("gamma", "sigma", "sigma_tb", "sigma_mismatch", "dgamma"):
+            np.testing.assert_array_equal(a["timeseries"][q][:], b["timeseries"][q][:])
+        np.testing.assert_array_equal(a["checkpoint/tau"][:], b["checkpoint/tau"][:])
+    comm.Barrier()
