@@ -297,15 +297,14 @@ class BondedSystem:
             rz_new = float(r @ z)
             # ||e||_N^2 ~ r.M^-1 r against ||x||_N^2 = x.N x ~ x.rhs
             if rtol > 0 and abs(rz_new) <= rtol * rtol * abs(float(x @ rhs)):
-                self.n_stage_pcg += tally
+                if tally:
+                    self.n_stage_pcg += 1
                 return x, SolveInfo(0, nr / nb if nb > 0 else nr, berr, it)
             p = z + (rz_new / rz) * p
             rz = rz_new
-        if not tally:
-            pass
-        elif rtol > 0:
+        if tally and rtol > 0:
             self.n_stage_failed += 1
-        else:
+        elif tally:
             self.n_reuse_failed += 1
         return None, None
 
