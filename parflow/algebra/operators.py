@@ -56,6 +56,7 @@ class RigidityOperators:
         self.values_stale = False
         self.loaded_n = None       # the unit vectors whose values N holds (and its factor)
         self._scatter_ld = None    # S^T's node sums in order (residual_extended)
+        self._scatter_dd = None    # ... as a table of each node's rods (its double-double form)
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
         comp = np.arange(d)
@@ -179,23 +180,24 @@ class RigidityOperators:
         return out
 
     def residual_extended(self, tau: np.ndarray, b: np.ndarray,
-                          n: np.ndarray | None = None) -> np.ndarray | None:
+                          n: np.ndarray | None = None) -> np.ndarray:
         """r = -b - S S^T tau (replicated, length Nc) for the unit vectors n (default: the
-        current ones), with every product and sum in ``np.longdouble`` and r rounded to
-        double at the end -- None where long double is no wider than double.
+        current ones), in extended precision, rounded to double at the end.
 
         Near jamming the residual of a solve computed in double is round-off, ~eps ||N||
         ||tau||, and its component along the softest mode u_1 makes the correction from it
         wrong by ~eps cond(N) along u_1 -- the part of tau that carries sigma (docs/solvers.md,
         "The sigma identity near jamming").  Here the cancellation between b and S S^T tau
-        happens at eps_ld ~ 1e-19 (x86-64's 80-bit format; IEEE quad on aarch64), so one
-        correction with the factor of N brings tau to what double can hold.  The product is
-        taken with S S^T of the double unit vectors themselves -- the operator whose
-        identities (V_na = S^T tau, sigma = |V_na|^2 / Omega = -<tau|b> / Omega) are checked
-        -- not with the rounded entries of N."""
-        if not extended_precision_available():
-            return None
+        happens in numpy's long double where that is wider than double (x86-64: 64-bit
+        mantissa, eps 1.1e-19; aarch64 Linux: IEEE quad), and in double-double arithmetic
+        (error-free sums and products of doubles, ~1e-32) where it is not (Windows, Apple
+        silicon), so one correction with the factor of N brings tau to what double can hold.
+        The product is taken with S S^T of the double unit vectors themselves -- the
+        operator whose identities (V_na = S^T tau, sigma = |V_na|^2 / Omega = -<tau|b> /
+        Omega) are checked -- not with the rounded entries of N."""
         n = self._n if n is None else n
+        if not extended_precision_available():
+            return self._residual_double_double(tau, b, n)
         if self._scatter_ld is None:    # built on first use: only runs near jamming need it
             ends = np.concatenate([self._j_all, self._i_all])
             order = np.argsort(ends, kind="stable")
@@ -213,6 +215,42 @@ class RigidityOperators:
             u[nodes] = np.add.reduceat(np.concatenate([f, -f])[order], starts)
             w += nc_ * (u[j] - u[i])
         return (-np.asarray(b, dtype=np.longdouble) - w).astype(float)
+
+    def _residual_double_double(self, tau: np.ndarray, b: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """:meth:`residual_extended` in double-double arithmetic (for platforms whose long
+        double is double): every product split exactly (Dekker), every sum carried as an
+        unevaluated pair hi + lo.  The node sums of S^T run over a table of each node's
+        incident rods (one column per incidence, zeros beyond a node's degree)."""
+        if self._scatter_dd is None:
+            nc = self.nc
+            ends = np.concatenate([self._j_all, self._i_all])
+            order = np.argsort(ends, kind="stable")
+            nodes, starts, counts = np.unique(ends[order], return_index=True, return_counts=True)
+            shape = (nodes.size, int(counts.max()))
+            cell = np.ravel_multi_index((np.repeat(np.arange(nodes.size), counts),
+                                         np.arange(order.size) - np.repeat(starts, counts)), shape)
+            sign = np.where(order < nc, 1.0, -1.0)
+            self._scatter_dd = (order % nc, sign, nodes, cell, shape)
+        src, sign, nodes, cell, shape = self._scatter_dd
+        i, j = self._i_all, self._j_all
+        tau = np.asarray(tau, dtype=float)
+        wh, wl = np.zeros(self.nc), np.zeros(self.nc)
+        uh, ul = np.zeros(self.n_nodes), np.zeros(self.n_nodes)
+        for c in range(self.d):
+            nc_ = np.ascontiguousarray(n[:, c], dtype=float)
+            fh, fl = _two_prod(tau, nc_)
+            H, L = np.zeros(shape), np.zeros(shape)
+            H.flat[cell] = fh[src] * sign          # (a sign flip is exact)
+            L.flat[cell] = fl[src] * sign
+            ah, al = H[:, 0].copy(), L[:, 0].copy()
+            for k in range(1, shape[1]):            # over the incidences of a node (<= degree)
+                ah, al = _dd_add(ah, al, H[:, k], L[:, k])
+            uh[nodes], ul[nodes] = ah, al
+            dh, dl = _dd_add(uh[j], ul[j], -uh[i], -ul[i])
+            ph, pl = _two_prod(nc_, dh)
+            wh, wl = _dd_add(wh, wl, ph, pl + nc_ * dl)
+        rh, rl = _dd_add(-np.asarray(b, dtype=float), np.zeros(self.nc), -wh, -wl)
+        return rh + rl
 
     @property
     def norm_bound(self) -> float:
@@ -250,6 +288,36 @@ def extended_precision_available() -> bool:
     """Whether numpy's long double carries more bits than double (x86-64 Linux: 64-bit
     mantissa; aarch64 Linux: IEEE quad; not on Windows or Apple silicon, where it is double)."""
     return bool(np.finfo(np.longdouble).eps < 1e-18)
+
+
+_SPLIT = 134217729.0             # 2^27 + 1: Dekker's split of a double into two halves
+
+
+def _two_sum(a: np.ndarray, b: np.ndarray):
+    """s + e = a + b exactly (Knuth)."""
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
+def _two_prod(a: np.ndarray, b: np.ndarray):
+    """p + e = a * b exactly (Dekker; no fused multiply-add needed)."""
+    p = a * b
+    c = _SPLIT * a
+    ah = c - (c - a)
+    al = a - ah
+    c = _SPLIT * b
+    bh = c - (c - b)
+    bl = b - bh
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+def _dd_add(ah, al, bh, bl):
+    """(ah + al) + (bh + bl) as a normalised double-double pair."""
+    s, e = _two_sum(ah, bh)
+    e = e + (al + bl)
+    hi = s + e
+    return hi, e - (hi - s)
 
 
 def _mpi_max():

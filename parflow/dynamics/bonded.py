@@ -190,15 +190,13 @@ class BondedSystem:
 
     def _refine_identity(self, F: Force, what: str) -> Force:
         """F with tau corrected from residuals in extended precision until the sigma
-        identity is within IDENTITY_RTOL (see there); F itself where that gains nothing or
-        long double is no wider than double.  The correction solves N(s) x = r with the
+        identity is within IDENTITY_RTOL (see there); F itself where that gains nothing.
+        The correction solves N(s) x = r with the
         factor: loaded at s (applied once: x needs only a few correct digits, its size is the
         identity's error), or of a nearby configuration (PCG on it to IDENTITY_PCG_RTOL)."""
         best = F
         for _ in range(IDENTITY_MAX_REFINE):
             r = self.ops.residual_extended(best.tau, best.b, best.n)
-            if r is None:
-                return best
             if self.ops.values_stale:
                 x, _ = self._solve_reused(best.n, r, what + " (identity)",
                                           rtol=IDENTITY_PCG_RTOL, tally=False)
