@@ -222,6 +222,7 @@ def test_short_run_with_the_preset(mpi_tmp_path):
 
 # --- the direct solve near jamming: its correction in extended precision ----------------
 
+# the dense references (the residual, exact_tau) are computed in long double
 needs_long_double = pytest.mark.skipif(not extended_precision_available(),
                                        reason="numpy's long double is double on this platform")
 
@@ -290,11 +291,12 @@ def test_direct_solve_corrected_to_the_exact_forces(jammed, monkeypatch):
         sysm.destroy()
 
 
+@needs_long_double
 def test_double_double_where_long_double_is_double(jammed, monkeypatch):
     """Where long double is double (Windows, Apple silicon) the residual is formed in
-    double-double arithmetic: at the direct solve's tau (a residual that is round-off) it
-    agrees with the dense long-double one -- or, without long double here, with the exact
-    solution's correction -- and the corrected force meets the identity all the same."""
+    double-double arithmetic (forced here): at the direct solve's tau (a residual that is
+    round-off) it agrees with the long-double one, and the corrected force meets the identity
+    and the exact tau all the same."""
     st = jammed
     sysm = _system(st, "direct")
     try:
@@ -302,13 +304,12 @@ def test_double_double_where_long_double_is_double(jammed, monkeypatch):
         monkeypatch.setattr(operators, "extended_precision_available", lambda: False)
         r_dd = sysm.ops.residual_extended(F.tau, F.b, F.n)
         assert np.linalg.norm(r_dd) <= 1e-14 * np.linalg.norm(F.tau) * sysm.ops.norm_bound
-        if extended_precision_available():
-            monkeypatch.undo()
-            r_ld = sysm.ops.residual_extended(F.tau, F.b, F.n)
-            # long double carries ~3 digits of a residual 1e-16 of its terms (eps 1.1e-19),
-            # double-double ~16: they agree to long double's
-            assert np.linalg.norm(r_dd - r_ld) <= 1e-2 * np.linalg.norm(r_ld)
-            monkeypatch.setattr(operators, "extended_precision_available", lambda: False)
+        monkeypatch.undo()
+        r_ld = sysm.ops.residual_extended(F.tau, F.b, F.n)
+        # long double carries ~3 digits of a residual 1e-16 of its terms (eps 1.1e-19),
+        # double-double ~16: they agree to long double's
+        assert np.linalg.norm(r_dd - r_ld) <= 1e-2 * np.linalg.norm(r_ld)
+        monkeypatch.setattr(operators, "extended_precision_available", lambda: False)
         G = sysm.evaluate(st.s, st.gamma)
         assert G.sigma_mismatch <= bonded.IDENTITY_RTOL
         ref = exact_tau(st, G.n, G.b)
@@ -318,7 +319,6 @@ def test_double_double_where_long_double_is_double(jammed, monkeypatch):
         sysm.destroy()
 
 
-@needs_long_double
 def test_direct_run_keeps_the_identity(jam_run):
     """The whole run to sigma >= 1e6 with the direct solve: identity <= IDENTITY_RTOL at every
     step, the correction counted in the run file."""
@@ -330,7 +330,6 @@ def test_direct_run_keeps_the_identity(jam_run):
         assert int(f.attrs["n_identity_refined"]) > 0
 
 
-@needs_long_double
 def test_restart_with_corrections_equals_uninterrupted(jam_run, mpi_tmp_path, comm):
     """Stopped a few steps before sigma = 1e6 (where every force is corrected) and restarted
     from the checkpoint (its tau is the corrected one): the same run, bit for bit."""
