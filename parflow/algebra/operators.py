@@ -55,7 +55,7 @@ class RigidityOperators:
         self._n, self._s_fresh = None, False
         self.values_stale = False
         self.loaded_n = None       # the unit vectors whose values N holds (and its factor)
-        self._scatter_ld = None    # S^T's node sums in order (residual_extended)
+        self._scatter_ld = None    # the rods' ends sorted by node (_ends_by_node)
         self._scatter_dd = None    # ... as a table of each node's rods (its double-double form)
 
         # --- S pattern: each row has 2d entries, columns sorted --------------------------
@@ -198,12 +198,7 @@ class RigidityOperators:
         n = self._n if n is None else n
         if not extended_precision_available():
             return self._residual_double_double(tau, b, n)
-        if self._scatter_ld is None:    # built on first use: only runs near jamming need it
-            ends = np.concatenate([self._j_all, self._i_all])
-            order = np.argsort(ends, kind="stable")
-            nodes, starts = np.unique(ends[order], return_index=True)
-            self._scatter_ld = (order, nodes, starts)
-        order, nodes, starts = self._scatter_ld
+        order, nodes, starts, _ = self._ends_by_node()
         i, j = self._i_all, self._j_all
         t = np.asarray(tau, dtype=np.longdouble)
         w = np.zeros(self.nc, dtype=np.longdouble)
@@ -216,6 +211,17 @@ class RigidityOperators:
             w += nc_ * (u[j] - u[i])
         return (-np.asarray(b, dtype=np.longdouble) - w).astype(float)
 
+    def _ends_by_node(self):
+        """The rods' ends (j: +, then i: -) sorted by node, stably: (order into the 2 Nc ends,
+        the nodes with a rod, where each node's run starts, its length).  Built on first use:
+        only runs near jamming need it."""
+        if self._scatter_ld is None:
+            ends = np.concatenate([self._j_all, self._i_all])
+            order = np.argsort(ends, kind="stable")
+            nodes, starts, counts = np.unique(ends[order], return_index=True, return_counts=True)
+            self._scatter_ld = (order, nodes, starts, counts)
+        return self._scatter_ld
+
     def _residual_double_double(self, tau: np.ndarray, b: np.ndarray, n: np.ndarray) -> np.ndarray:
         """:meth:`residual_extended` in double-double arithmetic (for platforms whose long
         double is double): every product split exactly (Dekker), every sum carried as an
@@ -223,9 +229,7 @@ class RigidityOperators:
         incident rods (one column per incidence, zeros beyond a node's degree)."""
         if self._scatter_dd is None:
             nc = self.nc
-            ends = np.concatenate([self._j_all, self._i_all])
-            order = np.argsort(ends, kind="stable")
-            nodes, starts, counts = np.unique(ends[order], return_index=True, return_counts=True)
+            order, nodes, starts, counts = self._ends_by_node()
             shape = (nodes.size, int(counts.max()))
             cell = np.ravel_multi_index((np.repeat(np.arange(nodes.size), counts),
                                          np.arange(order.size) - np.repeat(starts, counts)), shape)
