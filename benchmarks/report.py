@@ -497,35 +497,47 @@ def flush_section(d):
 
 def departure_section(d):
     rows = d["rows"]
-    etas = sorted({r["eta"] for r in rows})
-    groups = sorted({(r["method"], r["tol"]) for r in rows}, key=lambda g: (g[0] != "rkc", -g[1]))
-    by = {(r["method"], r["tol"], r["eta"]): r for r in rows}
     out = ["## Reversibility of the chain: departure against a seeded displacement "
            "(`bench_departure.py`)", "",
            f"The Fig. 2 scene ({d['scene']}): at the turn every node is displaced by a Gaussian "
            "vector of rms η a0 per coordinate (`[[protocol.leg]] perturb`), rod lengths restored; "
            "the strain after the reversal where the reversed branch leaves the forward one "
-           "(|Δ ln ⟨V²⟩| > 0.1 at the same γ).  η = 0: no displacement (the integrator's own "
+           "(|Δ ln ⟨V²⟩| > 0.1 at the same γ).  η = 0: no displacement (the integration's own "
            f"error is the seed).  Measured {d['date']}, load average "
-           f"{', '.join(f'{x:.1f}' for x in d['loadavg'])}.", "",
-           "| integrator | " + " | ".join("η = 0" if e == 0 else f"η = {e:g}" for e in etas) + " |",
-           "|---|" + "---|" * len(etas)]
-    for m, t in groups:
-        cells = []
-        for e in etas:
-            r = by.get((m, t, e))
-            cells.append("" if r is None else f"{r['departure_strain']:.3g}")
-        out.append(f"| {m}, tol {t:g} | " + " | ".join(cells) + " |")
-    f = d.get("fit")
-    if f:
-        out += ["", f"From the seeded runs of {f['method']} (tol {f['tol']:g}) with η between "
-                f"{f['eta_range'][0]:g} and {f['eta_range'][1]:g}: departure ≈ "
-                f"{f['x0_at_1e6']:.3g} + {f['per_decade']:.3g} log10(10⁻⁶/η), i.e. the reversed "
-                f"flow amplifies the seed at λ ≈ {f['rate_lambda']:.3g} per unit strain "
-                "(⟨V²⟩ = 10⁸ at the turn).  Steps of the first reversed strain: at most "
-                f"{max(r['first_reverse_step'] for r in rows):.2g} (the scene's split reversed "
-                "leg), and the crossing is interpolated between rows."]
-    return out + [""]
+           f"{', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
+    for turn, title in (("scene", "The forward leg's steps as the integrator chooses them"),
+                        ("resolved", "The forward leg's last part resolved too (steps ≤ "
+                                     "max_dgamma from ⟨V²⟩ = 9·10⁷ to the turn)")):
+        part = [r for r in rows if r.get("turn", "scene") == turn]
+        if not part:
+            continue
+        etas = sorted({r["eta"] for r in part})
+        groups = sorted({(r["method"], r["tol"]) for r in part},
+                        key=lambda g: (g[0] != "rkc", g[0], -g[1]))
+        by = {(r["method"], r["tol"], r["eta"]): r for r in part}
+        out += [f"{title}:", "",
+                "| integrator | last forward step | " + " | ".join(
+                    "η = 0" if e == 0 else f"η = {e:g}" for e in etas) + " |",
+                "|---|---|" + "---|" * len(etas)]
+        for m, t in groups:
+            cells = [("" if (m, t, e) not in by else f"{by[(m, t, e)]['departure_strain']:.3g}")
+                     for e in etas]
+            last = [r["last_forward_step"] for r in part
+                    if (r["method"], r["tol"]) == (m, t) and "last_forward_step" in r]
+            out.append(f"| {m}, tol {t:g} | {f'{last[0]:.2g}' if last else ''} | "
+                       + " | ".join(cells) + " |")
+        f = d.get("fit" if turn == "scene" else "fit_resolved")
+        if f:
+            out += ["", f"From the seeded runs of {f['method']} (tol {f['tol']:g}) with η between "
+                    f"{f['eta_range'][0]:g} and {f['eta_range'][1]:g}: departure ≈ "
+                    f"{f['x0_at_1e6']:.3g} + {f['per_decade']:.3g} log10(10⁻⁶/η), i.e. the reversed "
+                    f"flow amplifies the seed at λ ≈ {f['rate_lambda']:.3g} per unit strain "
+                    "(⟨V²⟩ = 10⁸ at the turn)."]
+        out.append("")
+    out += [f"Steps of the first reversed strain: at most "
+            f"{max(r['first_reverse_step'] for r in rows):.2g} (the scene's split reversed "
+            "leg), and the crossing is interpolated between rows.", ""]
+    return out
 
 
 def stiff_section(d):
