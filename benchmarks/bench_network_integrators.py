@@ -35,7 +35,8 @@ from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
-from common import FORWARD_AND_BACK, FORWARD_SPLIT_AND_BACK, network_file  # noqa: E402  (benchmarks/common.py)
+from common import (FORWARD_AND_BACK, FORWARD_RESOLVED_AND_BACK, FORWARD_SPLIT_AND_BACK,  # noqa: E402
+                    network_file)  # noqa: E402  (benchmarks/common.py)
 
 CASES = {
     "heun": 'method = "heun"',
@@ -87,6 +88,23 @@ PERTURB_CASES = {f"{m}_seeded_{k}": (m, k) for m in ("heun", "rkc", "ros2_fast_h
                  for k in PERTURB_SEEDS}
 for _name, (_m, _k) in PERTURB_CASES.items():
     CASES[_name] = CASES[_m] + f"; reversed leg: perturb = {PERTURB_ETA:g}, perturb_seed = {_k}"
+# the turn resolved: steps <= h from sigma = split to the turn and for the reversed leg's first
+# rstrain (the legs' max_dgamma), the scene's integrator elsewhere (or, for the reversed legs,
+# the integrator keys given): does the turn's resolution decide the reversed branch, as it does
+# for the chain (docs/chain.md "What seeds it")?
+RESOLVED_CASES = {
+    "heun_turn": ('method = "heun"', 5e5, 1e-8, 1e-6, ""),
+    "heun_turn_5e-9": ('method = "heun"', 5e5, 5e-9, 1e-6, ""),
+    "ros2_turn": ('method = "ros2"\ntol = 0.05', 5e5, 1e-8, 1e-6, ""),
+    "rkc_turn": ('method = "rkc"\ntol = 0.05', 5e5, 1e-8, 1e-6, ""),
+    "rkc_turn_2e5": ('method = "rkc"\ntol = 0.05', 2e5, 1e-8, 1e-6, ""),
+    "rkc_turn_1e-5": ('method = "rkc"\ntol = 0.05', 5e5, 1e-8, 1e-5, ""),
+    "rkc_turn_heun": ('method = "rkc"\ntol = 0.05', 5e5, 1e-8, 1e-6, 'method = "heun"'),
+}
+for _name, (_scene, _split, _h, _rs, _rk) in RESOLVED_CASES.items():
+    CASES[_name] = (f"{_scene}; steps <= {_h:g} from sigma = {_split:g} to the turn and for "
+                    f"the first {_rs:g} reversed" + (f"; reversed: {_rk}" if _rk else "")
+                    ).replace("\n", "; ")
 DEFAULT_CASES = ("heun", "heun_stages", "rkc", "rkc_stages", "rkc_2stages", "ref_heun", "ref_rkc")
 C_WINDOW = (1e5, 1e3)
 
@@ -111,7 +129,13 @@ def run(folder, n, network, case):
         os.remove(path)
     comm.tompi4py().Barrier()
     base, seed = PERTURB_CASES.get(case, (case, None))
-    if base in SPLIT_CASES:
+    if base in RESOLVED_CASES:
+        settings, split, h, rstrain, rkeys = RESOLVED_CASES[base]
+        text = FORWARD_RESOLVED_AND_BACK.format(
+            n=n, network=network, path=path, split=split, h=h, rstrain=rstrain,
+            rkeys=f", {rkeys}" if rkeys else "", rlast=f"integrator = {{ {rkeys} }}" if rkeys else "",
+            settings="[integrator]\n" + settings)
+    elif base in SPLIT_CASES:
         settings, split, near = SPLIT_CASES[base]
         text = FORWARD_SPLIT_AND_BACK.format(n=n, network=network, path=path, split=split,
                                              near=near, settings="[integrator]\n" + settings)

@@ -51,6 +51,33 @@ path = "{path}"
 """
 
 
+# the forward leg's last part, from sigma = {split}, and the reversed leg's first {rstrain} in
+# steps of at most {h} ("the turn resolved"); {rkeys}: more keys for the reversed legs (", ..."),
+# {rlast}: the last reversed leg's integrator table line (or "")
+FORWARD_RESOLVED_AND_BACK = NETWORK_MODEL + """[[protocol.leg]]
+direction = "forward"
+sigma_above = {split:g}
+[[protocol.leg]]
+direction = "forward"
+sigma_above = 1e6
+integrator = {{ max_dgamma = {h:g} }}
+[[protocol.leg]]
+direction = "reverse"
+sigma_below = 10
+sigma_above = 1e7
+strain = {rstrain:g}
+integrator = {{ max_dgamma = {h:g}{rkeys} }}
+[[protocol.leg]]
+direction = "reverse"
+sigma_below = 10
+sigma_above = 1e7
+strain = 1.0
+{rlast}
+{settings}
+[output]
+path = "{path}"
+"""
+
 def network_file(folder: str, n: int, comm) -> str:
     """The N-node network of the benchmarks (packing at phi = 0.88, WLKM dilution to z = 3.8,
     seed 1) in ``folder``, built by rank 0 if it is not there yet; collective."""
