@@ -466,8 +466,10 @@ def network_integrators_section(d):
                 "resolved RKC2 runs agree with RKC2's own references instead (from 2·10⁵: "
                 f"{100 * t['rkc_turn_2e5']['dC_ref_rkc']:+.1f} % against ref_rkc): RKC2 converges "
                 "to another C, whatever its step size, and why is not understood — held to two "
-                "stages it is Heun's equal (below), and on the chain, too, RKC2 resolved departs "
-                "10–13 % apart from Heun and ROS2 (docs/chain.md).  A resolved turn costs Heun "
+                "stages it is Heun's equal (below).  It is not the round-off of RKC2's stage "
+                "recursion, which set the chain's resolved departure 12 % apart (docs/chain.md): "
+                "with the stages in increment form the network's C is the same (0.0435 resolved, "
+                "0.0427 at the default; measured once, outside the table).  A resolved turn costs Heun "
                 f"{t['heun_turn']['n_factorisations'] / small['heun']['n_factorisations']:.1f}x "
                 "the factorisations here (the forward leg from σ = 5·10⁵ is ~5·10⁻⁶ of strain)."]
     if "rkc_2stages" in small and "heun" in small:

@@ -17,6 +17,9 @@ One step of size h = direction * dg from (s, gamma) with F0 = F(s):
     Yj = (1 - mu_j - nu_j) Y0 + mu_j Y(j-1) + nu_j Y(j-2) + mu~_j h F(Y(j-1)) + gamma~_j h F0
     (the Chebyshev recursion, coefficients below), s' = Ys, projected on the rod lengths
     with the last stage's factor (as Heun), and F1 = F(s') (reused as the next F0).
+    Computed as increments dj = Yj - Y0 (the same recursion without the Y0 term), so that
+    no |s|-sized terms with cancelling coefficients are rounded: formed from the states, the
+    round-off was 10x Heun's seed of the chain's reversal (docs/chain.md "What seeds it").
     error estimate (embedded, first order): est = 0.8 (Y0 - Ys) + 0.4 h (F0 + F1), measured
     like Heun's error as a displacement relative to the step's displacement:
     err = |h^-1-free est in real space| / (dg max(|V0|, |V1|)) -- accepted if err <= tol, and
@@ -152,12 +155,12 @@ class RKC(Heun):
             n_st = stages_for(dg, self.rho * self.boost, c.max_stages)
             h = direction * dg
             try:
-                Ys, F1 = self._stages(s, gamma, F0, h, n_st)
+                Ys, F1, d = self._stages(s, gamma, F0, h, n_st)
             except SingularOperator:
                 rejected += 1
                 dg *= 0.25
                 continue
-            est = 0.8 * (s - Ys) + 0.4 * h * (F0.ds + F1.ds)
+            est = 0.4 * h * (F0.ds + F1.ds) - 0.8 * d      # d = Ys - s, not rounded
             r_est = est @ F1.h.T
             scale = dg * max(nV0, vnorm(F1.V_na))
             err = float(np.linalg.norm(r_est)) / scale if scale > 0 else 0.0
@@ -191,21 +194,26 @@ class RKC(Heun):
             return StepResult(s_new, gamma + h, F, h, dg * grow, err, rejected, it, lerr)
 
     def _stages(self, s, gamma, F0, h, n_st):
-        """Ys and F(Ys) of one RKC2 step with n_st stages (F evaluated at the stages)."""
+        """Ys, F(Ys) and Ys - s of one RKC2 step with n_st stages (F evaluated at the
+        stages)."""
         mut1, mu, nu, mut, gt = rkc_coefficients(n_st)
         k0 = F0.ds
-        y_prev2, y_prev = s, s + mut1 * h * k0
+        # the stages as increments d_j = Y_j - s: Y_j = (1 - mu - nu) s + mu Y_j-1 + nu Y_j-2
+        # + ... is d_j = mu d_j-1 + nu d_j-2 + ..., the same in exact arithmetic, but it does
+        # not round |s|-sized terms whose coefficients (~2 and ~-1) cancel
+        d_prev2, d_prev = np.zeros_like(s), mut1 * h * k0
         # stage abscissae c_j (for gamma): c_1 = mu~_1, then the same recursion on c
         c_prev2, c_prev = 0.0, mut1
         F = F0
         for j in range(2, n_st + 1):               # the stages (sequential by nature)
-            F = self._F(y_prev, gamma + c_prev * h, "RKC stage", near=F)
+            F = self._F(s + d_prev, gamma + c_prev * h, "RKC stage", near=F)
             m, n_, mt, g = mu[j - 2], nu[j - 2], mut[j - 2], gt[j - 2]
-            y = (1 - m - n_) * s + m * y_prev + n_ * y_prev2 + mt * h * F.ds + g * h * k0
+            d = m * d_prev + n_ * d_prev2 + mt * h * F.ds + g * h * k0
             cj = m * c_prev + n_ * c_prev2 + mt + g
-            y_prev2, y_prev, c_prev2, c_prev = y_prev, y, c_prev, cj
-        F1 = self._F(y_prev, gamma + h, "RKC end", near=F)
-        return y_prev, F1
+            d_prev2, d_prev, c_prev2, c_prev = d_prev, d, c_prev, cj
+        Ys = s + d_prev
+        F1 = self._F(Ys, gamma + h, "RKC end", near=F)
+        return Ys, F1, d_prev
 
 
 INTEGRATORS["rkc"] = RKC
