@@ -32,13 +32,15 @@ path = "{path}"
 # the same with the forward leg split at sigma = {split}: the scene's [integrator] ({settings})
 # up to there, the legs' own integrator keys ({near}, a TOML inline table's contents) from there
 # on, through the turn and the reversed leg
-FORWARD_SPLIT_AND_BACK = NETWORK_MODEL + """[[protocol.leg]]
+# the forward leg in two: to sigma = {split}, then to the turn (its integrator line follows)
+FORWARD_IN_TWO = """[[protocol.leg]]
 direction = "forward"
 sigma_above = {split:g}
 [[protocol.leg]]
 direction = "forward"
 sigma_above = 1e6
-integrator = {{ {near} }}
+"""
+FORWARD_SPLIT_AND_BACK = NETWORK_MODEL + FORWARD_IN_TWO + """integrator = {{ {near} }}
 [[protocol.leg]]
 direction = "reverse"
 sigma_below = 10
@@ -54,13 +56,7 @@ path = "{path}"
 # the forward leg's last part, from sigma = {split}, and the reversed leg's first {rstrain} in
 # steps of at most {h} ("the turn resolved"); {rkeys}: more keys for the reversed legs (", ..."),
 # {rlast}: the last reversed leg's integrator table line (or "")
-FORWARD_RESOLVED_AND_BACK = NETWORK_MODEL + """[[protocol.leg]]
-direction = "forward"
-sigma_above = {split:g}
-[[protocol.leg]]
-direction = "forward"
-sigma_above = 1e6
-integrator = {{ max_dgamma = {h:g} }}
+FORWARD_RESOLVED_AND_BACK = NETWORK_MODEL + FORWARD_IN_TWO + """integrator = {{ max_dgamma = {h:g} }}
 [[protocol.leg]]
 direction = "reverse"
 sigma_below = 10
