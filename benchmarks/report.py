@@ -469,7 +469,12 @@ def network_integrators_section(d):
                 "stages it is Heun's equal (below).  It is not the round-off of RKC2's stage "
                 "recursion, which set the chain's resolved departure 12 % apart (docs/chain.md): "
                 "with the stages in increment form the network's C is the same (0.0435 resolved, "
-                "0.0427 at the default; measured once, outside the table).  A resolved turn costs Heun "
+                "0.0427 at the default; measured once, outside the table).  Also measured once "
+                "(2026-12-06, RKC2 in increment form): RKC2 at tol 5e-6 (max_displacement 0.001, "
+                "stage_rtol 1e-11; 7 503 steps) gives 0.0424 — its references at 5e-4, 5e-5, 5e-6 "
+                "stay at 0.042 ± 0.0004 instead of approaching Heun's — and capped at 3, 5, 10 "
+                "stages (tol 0.05) 0.0481, 0.0417, 0.0438 against 0.0391 at 2: the stage count "
+                "moves C by ±10 % with no trend.  A resolved turn costs Heun "
                 f"{t['heun_turn']['n_factorisations'] / small['heun']['n_factorisations']:.1f}x "
                 "the factorisations here (the forward leg from σ = 5·10⁵ is ~5·10⁻⁶ of strain)."]
     if "rkc_2stages" in small and "heun" in small:
