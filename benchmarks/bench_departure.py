@@ -17,7 +17,7 @@ With ``--resolved-turn`` the forward leg is split too: forward to <V^2> = TAIL_V
 scene, then on to the turn (<V^2> = 1e8) with steps of at most MAX_DG.  The reversed flow
 amplifies at lambda ~ 4 <V^2> ~ 4e8 per unit strain what the forward flow damps at the same
 rate, so an error the last forward steps make in the fast modes (RKC2 steps there are
-~1e-7, lambda h ~ 50: the stabilised step damps those modes, not as exp(-lambda h), and the
+2-6e-7, lambda h ~ 80-250: the stabilised step damps those modes, not as exp(-lambda h), and the
 error control, which sees a damped mode as small, lets it pass) is a seed that the reversal
 grows; with lambda h <= 0.2 on both sides of the turn that seed is gone and what is left is
 the state's own round-off.  Rows carry ``turn`` = "scene" or "resolved".
