@@ -9,7 +9,8 @@ rms eta a0 per coordinate (seeded), the rod lengths restored -- then the rest of
 reversed leg as in the scene.  For each
 integrator and tolerance, and each eta (0: no displacement, the integrator's own error is
 the only seed), the departure strain: where |ln V2_rev - ln V2_fwd| at the same gamma first
-exceeds 0.1, interpolated in log between the rows around it (``bench_stiff.departure``).  If the reversed flow amplifies a seed at a rate lambda, the
+exceeds 0.1, interpolated in log between the rows around it
+(``parflow.post.chain.reversal_departure``).  If the reversed flow amplifies a seed at a rate lambda, the
 departure is x0 + ln(1/eta) / lambda: converged *given eta* when every integrator agrees at
 that eta, and the unseeded runs tell which eta each integrator's own error amounts to.
 
@@ -41,9 +42,9 @@ import h5py
 import numpy as np
 
 import results  # noqa: E402  (benchmarks/results.py)
-from bench_stiff import departure  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from parflow.post.chain import reversal_departure as departure  # noqa: E402
 from parflow.scene import DEFAULT_SCENE  # noqa: E402
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")

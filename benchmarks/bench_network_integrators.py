@@ -35,8 +35,8 @@ from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
 import results  # noqa: E402  (benchmarks/results.py)
-from common import (FORWARD_AND_BACK, FORWARD_RESOLVED_AND_BACK, FORWARD_SPLIT_AND_BACK,  # noqa: E402
-                    network_file)  # noqa: E402  (benchmarks/common.py)
+from common import (FORWARD_AND_BACK, FORWARD_RESOLVED_AND_BACK,  # noqa: E402  (benchmarks/common.py)
+                    FORWARD_SPLIT_AND_BACK, network_file)
 
 CASES = {
     "heun": 'method = "heun"',

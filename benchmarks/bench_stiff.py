@@ -24,6 +24,8 @@ import numpy as np
 import results  # noqa: E402  (benchmarks/results.py)
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+from parflow.post.chain import reversal_departure as departure  # noqa: E402
 
 
 def run(method: str, tol: float, out: str, max_stages: int = 200) -> dict:
@@ -50,29 +52,6 @@ def forward_error(d, ref) -> float:
     ok = (g > ref["gamma"][fr][1]) & (g < ref["gamma"][fr][-2])
     vr = np.exp(np.interp(g[ok], ref["gamma"][fr], np.log(ref["V2"][fr])))
     return float(np.max(np.abs(np.log(v[ok] / vr))))
-
-
-def departure(d, level: float = 0.1, interpolate: bool = False) -> float:
-    """Strain since the reversal where the reversed branch leaves the forward one: the first
-    reversed row where |ln V2_rev - ln V2_fwd| (the forward branch interpolated to the row's
-    gamma) exceeds ``level``; with ``interpolate``, the crossing between that row and the one
-    before, log-linear in the deviation (it grows exponentially)."""
-    f, r = d["direction"] > 0, d["direction"] < 0
-    if not r.any():
-        return float("nan")
-    gf, vf = d["gamma"][f], d["V2"][f]
-    g_turn = gf[-1]
-    gr, vr = d["gamma"][r], d["V2"][r]
-    ok = gr >= gf[0]
-    x = g_turn - gr[ok]
-    dev = np.abs(np.log(vr[ok]) - np.interp(gr[ok], gf, np.log(vf)))
-    if not np.any(dev > level):
-        return float("nan")
-    k = int(np.argmax(dev > level))
-    if not interpolate or k == 0 or dev[k - 1] <= 0:
-        return float(x[k])
-    a, b = np.log(dev[k - 1]), np.log(dev[k])
-    return float(x[k - 1] + (np.log(level) - a) / (b - a) * (x[k] - x[k - 1]))
 
 
 def main():

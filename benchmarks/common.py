@@ -29,9 +29,6 @@ strain = 1.0
 path = "{path}"
 """
 
-# the same with the forward leg split at sigma = {split}: the scene's [integrator] ({settings})
-# up to there, the legs' own integrator keys ({near}, a TOML inline table's contents) from there
-# on, through the turn and the reversed leg
 # the forward leg in two: to sigma = {split}, then to the turn (its integrator line follows)
 FORWARD_IN_TWO = """[[protocol.leg]]
 direction = "forward"
@@ -40,6 +37,9 @@ sigma_above = {split:g}
 direction = "forward"
 sigma_above = 1e6
 """
+# the protocol with the forward leg split at sigma = {split}: the scene's [integrator]
+# ({settings}) up to there, the legs' own integrator keys ({near}, a TOML inline table's
+# contents) from there on, through the turn and the reversed leg
 FORWARD_SPLIT_AND_BACK = NETWORK_MODEL + FORWARD_IN_TWO + """integrator = {{ {near} }}
 [[protocol.leg]]
 direction = "reverse"
@@ -73,6 +73,7 @@ strain = 1.0
 [output]
 path = "{path}"
 """
+
 
 def network_file(folder: str, n: int, comm) -> str:
     """The N-node network of the benchmarks (packing at phi = 0.88, WLKM dilution to z = 3.8,

@@ -7,6 +7,7 @@ from petsc4py import PETSc
 
 from parflow.dynamics.heun import Heun, Jammed, StepControl
 from parflow.models import chain
+from parflow.post.chain import reversal_departure
 from parflow.scene import load_scene
 from parflow.dynamics.bonded import BondedSystem
 from systems import run_scene
@@ -196,15 +197,14 @@ FORWARD_RESOLVED = ('[[protocol.leg]]\ndirection = "forward"\nV2_above = 9e5\n' 
 
 
 def _departure(path) -> float:
-    """Strain after the turn where ln <V^2> of the reversed branch first differs from the
-    forward branch's (interpolated at the same gamma) by more than 0.1."""
+    """reversal_departure of the run file at ``path`` (strain after the turn where ln <V^2>
+    of the reversed branch first differs from the forward branch's by more than 0.1)."""
     with h5py.File(path, "r") as f:
         ts = f["timeseries"]
-        g, v2, d = ts["gamma"][:], ts["V2"][:], ts["direction"][:]
-    fw, rv = d > 0, d < 0
-    dev = np.abs(np.log(v2[rv]) - np.interp(g[rv], g[fw], np.log(v2[fw])))
-    assert np.any(dev > 0.1), "the reversed branch never left the forward one"
-    return float(g[fw][-1] - g[rv][int(np.argmax(dev > 0.1))])
+        d = {k: ts[k][:] for k in ("gamma", "V2", "direction")}
+    x = reversal_departure(d)
+    assert np.isfinite(x), "the reversed branch never left the forward one"
+    return x
 
 
 def test_reversal_with_the_turn_resolved_departs_where_the_integrators_agree(mpi_tmp_path):

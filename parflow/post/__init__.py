@@ -1,7 +1,7 @@
 """The numbers the docs quote, computed from run files (no drawing).
 
 * :mod:`.fits`        log-binning, power laws, divergence points, fit windows, branches
-* :mod:`.chain`       chain_theory, chain_fits (paper Fig. 2)
+* :mod:`.chain`       chain_theory, chain_fits, reversal_departure (paper Fig. 2)
 * :mod:`.network`     reverse_branch, fit_reverse_branch, fit_omega_star, network_fits,
                       across_fits (paper Figs. 3, 4, 5, 8)
 * :mod:`.suspension`  suspension_fits, pooled_fits, fit_phi_c, across_suspension (Figs. 6-7)

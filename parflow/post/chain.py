@@ -1,6 +1,7 @@
 """The chain's numbers (DESIGN §6, paper Fig. 2): gamma_c (the model attribute and fitted),
 the forward exponents of <V^2>, <dtheta^2>, <thetadot^2> against gamma_c - gamma, the
-exponents of l_corr, l_r and <dtheta^2>^(-1/2), and the reverse exponent of <V^2>."""
+exponents of l_corr, l_r and <dtheta^2>^(-1/2), the reverse exponent of <V^2>, and the strain
+at which the reversed branch departs from the forward one (reversal_departure)."""
 from __future__ import annotations
 
 import numpy as np
@@ -115,3 +116,27 @@ def reverse_window(x, V2):
     past = ok & (V2 <= v_turn / 10.0)
     lo = float(x[past].min()) if past.any() else float(x[ok].min())
     return lo, float(x[ok].max())
+
+
+def reversal_departure(d, level: float = 0.1, interpolate: bool = False) -> float:
+    """Strain since the reversal where the reversed branch leaves the forward one (``d``: the
+    timeseries columns gamma, V2, direction; NaN if it never leaves): the first reversed row
+    where |ln V2_rev - ln V2_fwd| (the forward branch interpolated to the row's gamma) exceeds
+    ``level``; with ``interpolate``, the crossing between that row and the one before,
+    log-linear in the deviation (it grows exponentially)."""
+    f, r = d["direction"] > 0, d["direction"] < 0
+    if not r.any():
+        return float("nan")
+    gf, vf = d["gamma"][f], d["V2"][f]
+    g_turn = gf[-1]
+    gr, vr = d["gamma"][r], d["V2"][r]
+    ok = gr >= gf[0]
+    x = g_turn - gr[ok]
+    dev = np.abs(np.log(vr[ok]) - np.interp(gr[ok], gf, np.log(vf)))
+    if not np.any(dev > level):
+        return float("nan")
+    k = int(np.argmax(dev > level))
+    if not interpolate or k == 0 or dev[k - 1] <= 0:
+        return float(x[k])
+    a, b = np.log(dev[k - 1]), np.log(dev[k])
+    return float(x[k - 1] + (np.log(level) - a) / (b - a) * (x[k] - x[k - 1]))
