@@ -139,7 +139,7 @@ def test_command_line(folders, tmp_path):
     assert res.returncode == 0, res.stderr
     assert "phi_inf" in res.stdout and json.load(open(tmp_path / "r.json"))["table"]
     for args, what in (([str(tmp_path / "nothing")], "no such file"),
-                       ([str(tmp_path / "empty")], "no compressed suspension")):
+                       ([str(tmp_path / "empty")], "no suspension sample found")):
         os.makedirs(tmp_path / "empty", exist_ok=True)
         res = cli(*args)
         assert res.returncode == 2 and what in res.stderr
@@ -216,3 +216,98 @@ def test_rate_figure_with_a_second_rate(folders):
     assert y[1] == pytest.approx(0.8405) == rows[(0.04, 1024)]
     x = n1024[0].get_xdata()
     assert x[1] / x[0] == pytest.approx(4.0)
+
+
+def single_run(path, status, phi_ts, strain_ts, jam=None, rate=0.02, to=0.840, seed=5):
+    """A single flowing run's file (as runs/suspension_phi0.840_flowing_seed*.toml write
+    them): phi and strain columns, /jam for a certified jam."""
+    with h5py.File(path, "w") as f:
+        f.attrs.update(format="parflow-run-1", model="suspension", status=status,
+                       scene=SCENE.format(N=4096, rate=rate, to=to), sample_seed=seed,
+                       git_commit="abc123")
+        g = f.create_group("timeseries")
+        g["phi"] = np.asarray(phi_ts, float)
+        g["gamma"] = g["strain"] = np.asarray(strain_ts, float)
+        if jam is not None:
+            j = f.create_group("jam")
+            j.attrs.update(certified=True, gamma=strain_ts[-1], support=7800, tau_b=-100.0,
+                           strain_budget=3e-12, **jam)
+
+
+def test_poisson_interval_is_garwoods():
+    """The exact central 95 % interval of a Poisson mean (Garwood 1936; the tabulated values
+    for 0, 1 and 5 events)."""
+    for n, (lo, hi) in ((0, (0.0, 3.689)), (1, (0.0253, 5.572)), (5, (1.623, 11.668))):
+        a, b = sj.poisson_interval(n)
+        assert a == pytest.approx(lo, abs=6e-4) and b == pytest.approx(hi, abs=6e-4)
+
+
+def test_jam_rate_at_constant_phi(tmp_path):
+    """Single flowing runs pooled at their final phi: each exposed from the row where phi
+    reached compress_to, a jam there counted, a jam while the discs swelled and a run that
+    never got there left out; the command line reads the files themselves."""
+    ramp = [0.820, 0.830, 0.840, 0.840, 0.840]
+    single_run(tmp_path / "seed5.h5", "interrupted", ramp, [0.0, 0.5, 1.0, 2.0, 2.92])
+    single_run(tmp_path / "seed6.h5", "jammed", ramp, [0.0, 0.5, 1.0, 1.6, 2.145], jam={})
+    single_run(tmp_path / "seed7.h5", "jammed", [0.82, 0.83, 0.8395], [0.0, 0.5, 0.975],
+               jam=dict(phi=0.8395, tau_b_shear=-80.0), seed=7)      # jammed while swelling
+    single_run(tmp_path / "seed8.h5", "interrupted", [0.82, 0.83], [0.0, 0.5], seed=8)
+    single_run(tmp_path / "seed9.h5", "running", ramp, [0.0, 0.5, 1.0, 1.1, 1.2], seed=9)
+    recs = sj.read_sources([str(tmp_path)])
+    by = {r["source"]: r for r in recs}
+    assert sorted(by) == ["seed5", "seed6", "seed7", "seed8"]        # the running one left out
+    assert by["seed5"]["strain_at_phi"] == pytest.approx(1.92)
+    assert by["seed6"]["strain_at_phi"] == pytest.approx(1.145)
+    assert by["seed6"]["constant_phi"] and by["seed6"]["shear_jam"]
+    assert math.isnan(by["seed7"]["strain_at_phi"]) and math.isnan(by["seed8"]["strain_at_phi"])
+    (row,) = sj.constant_phi_rates(recs)
+    assert (row["N"], row["phi"], row["n_samples"], row["n_jams"]) == (4096, 0.84, 2, 1)
+    assert row["strain"] == pytest.approx(3.065)
+    assert row["rate"] == pytest.approx(1 / 3.065)
+    lo, hi = sj.poisson_interval(1)
+    assert row["rate_ci"] == pytest.approx([lo / 3.065, hi / 3.065])
+    assert row["p_flow"] == pytest.approx(math.exp(-3.0 / 3.065))
+    # the same samples from a table written before strain_at_phi existed: a compressed
+    # sample's exposure is then unknown (out of the pool), an uncompressed one's its gamma
+    old = [dict(r) for r in recs]
+    for r in old:
+        del r["strain_at_phi"]
+    rest = dict(old[0], source="rest", compress_rate=0.0, compress_to=None, gamma=0.25,
+                phi=0.84, status="complete", shear_jam=False, constant_phi=False)
+    os.makedirs(tmp_path / "tables")
+    path = tmp_path / "tables" / "old.json"
+    with open(path, "w") as fh:
+        json.dump(sj._jsonable(dict(kind=sj.JAMS_KIND, version=sj.JAMS_VERSION,
+                                    samples=old + [rest])), fh)
+    (row,) = sj.constant_phi_rates(sj.load_table(str(path)))
+    assert (row["n_samples"], row["n_jams"], row["strain"]) == (1, 0, 0.25)
+    # the files' records win over the table's (the same source and sample)
+    (row,) = sj.constant_phi_rates(sj.read_sources([str(tmp_path), str(path)]))
+    assert (row["n_samples"], row["n_jams"]) == (3, 1)
+    assert row["strain"] == pytest.approx(3.315)
+    # an uncertified "jammed" (before certificates) cannot be placed: counted apart
+    single_run(tmp_path / "seed10.h5", "jammed", ramp, [0.0, 0.5, 1.0, 1.2, 1.3], seed=10)
+    (row,) = sj.constant_phi_rates(sj.read_sources([str(tmp_path)]))
+    assert row["uncertified"] == 1 and row["n_samples"] == 2
+
+
+@pytest.mark.serial_only
+def test_command_line_on_run_files(tmp_path):
+    ramp = [0.820, 0.830, 0.840, 0.840]
+    single_run(tmp_path / "a.h5", "interrupted", ramp, [0.0, 0.5, 1.0, 2.5])
+    single_run(tmp_path / "b.h5", "jammed", ramp, [0.0, 0.5, 1.0, 1.5], jam={}, seed=6)
+    res = subprocess.run([sys.executable, "-m", "parflow.post.suspension_jams",
+                          str(tmp_path / "a.h5"), str(tmp_path / "b.h5")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    k = [i for i, ln in enumerate(lines) if ln.startswith("jams at constant phi")]
+    assert len(k) == 1 and lines[k[0] + 1].split()[:5] == ["4096", "0.8400", "2", "1", "2.00"]
+    assert "a: interrupted at 0.8400 (still flowing)" in res.stdout
+    with open(tmp_path / "c.h5", "w") as fh:
+        fh.write("not hdf5")
+    res = subprocess.run([sys.executable, "-m", "parflow.post.suspension_jams",
+                          str(tmp_path / "c.h5")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 2 and "not a readable suspension run file" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1

@@ -506,11 +506,19 @@ def rate_exposure(run) -> tuple[float, bool]:
     if "phi" not in run.ts:
         return float(st[-1]), False
     phi = np.asarray(run.ts["phi"], float)
-    to = float(run.param("compress_to", 0.0) or phi.max())
-    at = np.flatnonzero(phi >= to)
-    if not at.size:
+    x = strain_at_final_phi(st, phi, float(run.param("compress_to", 0.0) or phi.max()))
+    if math.isnan(x):
         return 0.0, run.attrs.get("status") == "jammed"
-    return float(st[-1] - st[at[0]]), False
+    return x, False
+
+
+def strain_at_final_phi(strain, phi, compress_to: float) -> float:
+    """The strain run from the row where ``phi`` first reached ``compress_to`` to the last
+    row (the exposure of a sample compressed while it flowed); NaN if it never got there."""
+    at = np.flatnonzero(np.asarray(phi, float) >= compress_to)
+    if not at.size or not len(strain):
+        return math.nan
+    return float(strain[-1] - strain[at[0]])
 
 
 def summarise(folder: str) -> dict:

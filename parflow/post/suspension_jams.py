@@ -31,9 +31,16 @@ Jam tables (:func:`export`): every sample record of the paths read as one small 
 (kind :data:`JAMS_KIND`), so that ensembles whose run files are gone enter the analysis:
 docs/data/suspension_jams.json holds those docs/suspensions.md quotes.
 
+Jams at constant phi (:func:`constant_phi_rates`): per (N, phi), the certified jams per unit
+strain of the samples that ran there -- compressed to it while flowing, or started there --
+each exposed for the strain it ran at that phi (``strain_at_phi``), with the exact Poisson
+interval and the chance that a sample flows 3 strain there without a jam (the paper's 300 %).
+Single run files enter as well (the flowing seeds of runs/, e.g.
+runs/suspension_phi0.840_flowing_seed*.toml).
+
 ``python -m parflow.post.suspension_jams PATH... [--json OUT] [--export FILE]`` prints the
-table and the fit; a PATH is an ensemble folder, a jam table, or a folder searched one level
-down for both.  Figure: ``python -m parflow.plot.suspension_jams PATH...``.
+tables and the fit; a PATH is an ensemble folder, a jam table, a suspension run file, or a
+folder searched one level down for them.  Figure: ``python -m parflow.plot.suspension_jams PATH...``.
 """
 from __future__ import annotations
 
@@ -46,9 +53,8 @@ import tomllib
 import numpy as np
 
 from ..io import RunFile, atomic_json
-from .ensemble import find_sources, mean_sem, read_table, sample_files
-from .network_across_ensembles import (_jsonable, analyse_or_report, missing_path,
-                                      print_and_save)
+from .ensemble import find_sources, mean_sem, read_table, sample_files, strain_at_final_phi
+from .network_across_ensembles import _jsonable, missing_path, print_and_save
 
 JAMS_KIND = "parflow suspension jams"
 JAMS_VERSION = 1
@@ -59,6 +65,12 @@ FLOWING = ("complete", "budget", "interrupted")   # ended still flowing: phi a l
 RECORD_KEYS = ("source", "sample", "seed", "N", "compress_rate", "compress_to", "status",
                "shear_jam", "phi", "constant_phi", "gamma", "support", "tau_b", "tau_b_shear",
                "strain_budget", "git_commit")
+# keys a table may lack (written before they existed): read as NaN -- except strain_at_phi of
+# a sample that was not compressed, which is then its last gamma (every suspension scene
+# such a table came from ran one forward leg)
+OPTIONAL_KEYS = ("strain_at_phi",)
+RATE_CI = 0.95                 # the coverage of the jam rate's interval (exact Poisson)
+FLOW_STRAIN = 3.0              # the strain the paper ran before its statistics (300 %)
 
 
 def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
@@ -84,9 +96,14 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
     jammed = status == "jammed" and bool(jam.get("certified", False))
     has_phi = "phi" in jam
     tbs = float(jam.get("tau_b_shear", jam.get("tau_b", nan))) if jammed else nan
+    rate, to = float(model.get("compress_rate", 0.0)), float(model.get("compress_to", nan))
+    strain = ts.get("strain", ts.get("gamma", []))
+    if rate > 0 and phi_ts is not None:
+        at_phi = strain_at_final_phi(strain, phi_ts, to)
+    else:
+        at_phi = float(strain[-1]) if len(strain) else nan
     return dict(source=source, sample=int(sample), seed=int(attrs.get("sample_seed", -1)),
-                N=int(model.get("N", 0)), compress_rate=float(model.get("compress_rate", 0.0)),
-                compress_to=float(model.get("compress_to", nan)), status=status,
+                N=int(model.get("N", 0)), compress_rate=rate, compress_to=to, status=status,
                 shear_jam=bool(jammed and tbs < 0),
                 phi=float(jam["phi"]) if jammed and has_phi else phi_last,
                 constant_phi=bool(jammed and not has_phi),
@@ -95,7 +112,7 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
                 support=int(jam.get("support", 0)) if jammed else 0,
                 tau_b=float(jam.get("tau_b", nan)) if jammed else nan, tau_b_shear=tbs,
                 strain_budget=float(jam.get("strain_budget", nan)) if jammed else nan,
-                git_commit=str(attrs.get("git_commit", "")))
+                git_commit=str(attrs.get("git_commit", "")), strain_at_phi=at_phi)
 
 
 def read_folder(folder: str) -> list[dict]:
@@ -123,16 +140,41 @@ def load_table(path: str) -> list[dict]:
         missing = [k for k in RECORD_KEYS if k not in r]
         if missing:
             raise ValueError(f"{path}: a record lacks {', '.join(missing)}")
-        out.append({k: (math.nan if r[k] is None else r[k]) for k in RECORD_KEYS})
+        rec = {k: (math.nan if r.get(k) is None else r[k]) for k in RECORD_KEYS + OPTIONAL_KEYS}
+        if "strain_at_phi" not in r and not rec["compress_rate"] > 0:
+            rec["strain_at_phi"] = rec["gamma"]
+        out.append(rec)
+    return out
+
+
+def read_runs(paths) -> list[dict]:
+    """The records of single suspension run files (``*.h5``: e.g. the flowing seeds of
+    runs/) among ``paths`` and in the folders among them (one level down), of runs that have
+    ended or were stopped (source: the file's name, sample -1: not one of an ensemble).  A file named as a path must
+    be a readable suspension run (ValueError naming it otherwise); one found in a folder that
+    is not is passed over."""
+    named = {p for p in paths if p.endswith(".h5") and os.path.isfile(p)}
+    _, files = find_sources(paths, ".h5")
+    out = []
+    for path in files:
+        try:
+            rec = jam_record(path, os.path.splitext(os.path.basename(path))[0], -1)
+        except Exception as e:
+            if path in named:
+                raise ValueError(f"{path}: not a readable suspension run file ({e})") from None
+            continue
+        if rec["status"] in ENDED:
+            out.append(rec)
     return out
 
 
 def read_sources(paths) -> list[dict]:
-    """Every record of the ensemble folders and jam tables among ``paths`` (see
-    :func:`find_sources`); a sample found twice (the same source and index) counts once."""
+    """Every record of the ensemble folders, jam tables and single run files among ``paths``
+    (see :func:`find_sources`, :func:`read_runs`); a sample found twice (the same source and
+    index) counts once, as read from its run file rather than from a table."""
     folders, tables = find_sources(paths, ".json")
     recs, seen = [], set()
-    for r in [r for f in folders for r in read_folder(f)] + \
+    for r in [r for f in folders for r in read_folder(f)] + read_runs(paths) + \
              [r for t in tables for r in load_table(t)]:
         key = (r["source"], r["sample"])
         if key not in seen:
@@ -215,10 +257,60 @@ def _superseded(recs: list) -> set:
     return {k for k, r in enumerate(recs) if r["seed"] >= 0 and to(r) < best[start(r)]}
 
 
+def poisson_interval(n: int, level: float = RATE_CI) -> tuple[float, float]:
+    """The exact (Garwood) central interval of a Poisson mean from ``n`` events:
+    chi2_{(1-level)/2}(2n) / 2 and chi2_{(1+level)/2}(2n + 2) / 2 (the lower end 0 at n = 0)."""
+    from scipy.stats import chi2
+    a = 1.0 - level
+    lo = 0.0 if n == 0 else float(chi2.ppf(a / 2, 2 * n)) / 2
+    return lo, float(chi2.ppf(1 - a / 2, 2 * n + 2)) / 2
+
+
+def constant_phi_rates(recs: list) -> list[dict]:
+    """Genuine jams per unit strain at constant packing fraction, per (N, phi): the samples
+    that got to their final phi (compressed to ``compress_to`` while flowing, or started
+    there) pooled, each exposed for the strain it ran there (``strain_at_phi``; a jam ends
+    a sample), the certified jams at that phi counted (a jam while the discs still swelled
+    is not one of them; nor is a sample that never reached its compress_to).  Per row: the
+    count, the strain, the rate with its exact Poisson interval (:data:`RATE_CI`), and the
+    probability exp(-rate FLOW_STRAIN) that a sample flows FLOW_STRAIN there without a jam
+    (the rate's interval mapped alike).  A sample recorded ``jammed`` without a certificate
+    (written before certificates existed) cannot be placed: counted in ``uncertified``, out
+    of the pool."""
+    groups: dict = {}
+    for r in recs:
+        x = r.get("strain_at_phi", math.nan)
+        if not (isinstance(x, (int, float)) and math.isfinite(x)):
+            continue
+        phi = r["compress_to"] if r["compress_rate"] > 0 else r["phi"]
+        if not math.isfinite(phi):
+            continue
+        groups.setdefault((r["N"], round(float(phi), 4)), []).append(r)
+    rows = []
+    for (N, phi), rs in sorted(groups.items()):
+        bad = [r for r in rs if r["status"] == "jammed" and not r["shear_jam"]
+               and not math.isfinite(r["tau_b"])]
+        rs = [r for r in rs if not any(r is b for b in bad)]
+        n = sum(1 for r in rs if r["shear_jam"] and r["constant_phi"])
+        strain = float(sum(r["strain_at_phi"] for r in rs))
+        lo, hi = poisson_interval(n)
+        rate = n / strain if strain > 0 else math.nan
+        ci = [lo / strain, hi / strain] if strain > 0 else [math.nan, math.nan]
+        rows.append(dict(N=N, phi=phi, n_samples=len(rs), n_jams=n, strain=strain, rate=rate,
+                         rate_ci=ci, p_flow=math.exp(-FLOW_STRAIN * rate) if strain > 0
+                         else math.nan,
+                         p_flow_ci=[math.exp(-FLOW_STRAIN * ci[1]), math.exp(-FLOW_STRAIN * ci[0])],
+                         uncertified=len(bad), sources=sorted({r["source"] for r in rs})))
+    return rows
+
+
 def analyse(paths) -> dict:
     """Per (compression rate, N): the phi of the shear jams and the samples that did not
-    shear-jam; per rate, the fit across N (:func:`fit_fss`).  ``table``: one row per group."""
-    recs = [r for r in read_sources(paths) if r["compress_rate"] > 0]
+    shear-jam; per rate, the fit across N (:func:`fit_fss`).  ``table``: one row per group.
+    ``rates``: the jams per unit strain at constant phi (:func:`constant_phi_rates`), over
+    every sample read, compressed or not."""
+    every = read_sources(paths)
+    recs = [r for r in every if r["compress_rate"] > 0]
     superseded = _superseded(recs)
     groups, dropped, kept = {}, {}, []
     for k, r in enumerate(recs):
@@ -236,8 +328,8 @@ def analyse(paths) -> dict:
                           phi_mean=float(m), phi_sd=float(np.std(phis, ddof=1)) if n > 1
                           else math.nan, phi_sem=float(e), phi_values=phis.tolist(),
                           constant_phi=sum(1 for r in rs if r["constant_phi"]),
-                          not_shear_jammed=[dict(sample=r["sample"], status=r["status"],
-                                                 phi=r["phi"]) for r in rs
+                          not_shear_jammed=[dict(sample=r["sample"], source=r["source"],
+                                                 status=r["status"], phi=r["phi"]) for r in rs
                                             if not r["shear_jam"]],
                           sources=sorted({r["source"] for r in rs}),
                           superseded=dropped.get((rate, N), 0)))
@@ -248,13 +340,34 @@ def analyse(paths) -> dict:
                 [t["phi_sem"] for t in rows])
         fits[rate], free[rate] = fit_fss(*args), fit_fss_free(*args)
     return dict(table=table, fits=fits, fits_free=free, n_superseded=len(superseded),
-                records=kept)
+                records=kept, rates=constant_phi_rates(every))
+
+
+def format_rates(rates: list) -> list[str]:
+    pc = f"{100 * RATE_CI:g} %"
+    out = [f"jams at constant phi:     N     phi  samples  jams  strain  per unit strain ({pc})"
+           f"      P(no jam in {FLOW_STRAIN:g} strain)"]
+    for t in rates:
+        out.append(f"{'':21s}{t['N']:>6d}  {t['phi']:.4f} {t['n_samples']:>8d} {t['n_jams']:>5d} "
+                   f"{t['strain']:>7.2f}  {t['rate']:.3f} ({t['rate_ci'][0]:.3f}-"
+                   f"{t['rate_ci'][1]:.3f})      {t['p_flow']:.2f} ({t['p_flow_ci'][0]:.2f}-"
+                   f"{t['p_flow_ci'][1]:.2f})"
+                   + (f"  [{t['uncertified']} jammed without a certificate left out]"
+                      if t["uncertified"] else ""))
+    return out
 
 
 def format_table(res: dict) -> list[str]:
+    if not res["table"]:
+        return format_rates(res.get("rates", []))
+    return _format_sj(res) + format_rates(res.get("rates", []))
+
+
+def _format_sj(res: dict) -> list[str]:
     out = ["compress_rate     N  samples  shear jams  phi_SJ mean +- sem (sd)        not shear-jammed"]
     for t in res["table"]:
-        nj = ", ".join(f"{x['sample']}: {x['status']} at {x['phi']:.4f}"
+        nj = ", ".join(f"{x['sample'] if x['sample'] >= 0 else x['source']}: {x['status']} "
+                       f"at {x['phi']:.4f}"
                        + (" (still flowing)" if x["status"] in FLOWING else "")
                        for x in t["not_shear_jammed"]) or "-"
         mean = (f"{t['phi_mean']:.4f} +- {t['phi_sem']:.4f} ({t['phi_sd']:.4f})"
@@ -290,7 +403,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog=prog, description="Where flowing suspensions "
                                  "compressed while sheared shear-jam, across N (phi_SJ(N))")
     ap.add_argument("paths", nargs="+", metavar="PATH",
-                    help="ensemble folders, jam tables (JSON), or folders holding them")
+                    help="ensemble folders, jam tables (JSON), suspension run files (.h5), "
+                    "or folders holding them")
     ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
     ap.add_argument("--export", metavar="FILE", help="write every sample record read as one "
                     "jam table (JSON) to FILE")
@@ -298,10 +412,15 @@ def main(argv=None) -> int:
     name = "suspension_jams"
     if missing_path(args.paths, name):
         return 2
-    res = analyse_or_report(analyse, (args.paths,), name,
-                            "no compressed suspension ensemble sample found (a PATH is an "
-                            "ensemble folder, a jam table, or a folder holding them)")
-    if res is None:
+    try:
+        res = analyse(args.paths)
+    except ValueError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 2
+    if not res["table"] and not res["rates"]:
+        print(f"{name}: no suspension sample found that was compressed or ran at constant "
+              f"phi (a PATH is an ensemble folder, a jam table, a run file, or a folder "
+              f"holding them)", file=sys.stderr)
         return 2
     print_and_save(res, format_table, args.json)
     if args.export:
