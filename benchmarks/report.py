@@ -6,6 +6,7 @@ so that every number quoted in the docs comes from a benchmark run of this code.
 from __future__ import annotations
 
 import json
+import math
 import os
 
 import results
@@ -465,8 +466,14 @@ def network_integrators_section(d):
                 "steps over the last 10⁻⁵ after an RKC2 approach give Heun's C (above).  The "
                 "resolved RKC2 runs agree with RKC2's own references instead (from 2·10⁵: "
                 f"{100 * t['rkc_turn_2e5']['dC_ref_rkc']:+.1f} % against ref_rkc): RKC2 converges "
-                "to another C, whatever its step size, and why is not understood — held to two "
-                "stages it is Heun's equal (below).  It is not the round-off of RKC2's stage "
+                "to another C, whatever its step size — why, measured since (2026-12-07): the "
+                "seed each method leaves at the turn has a direction of its own, and its sign "
+                "selects the branch (\"What selects a network's reversed branch\" below; "
+                "there RKC2 held to two stages, its window resolved, gives RKC2's C too.  The "
+                f"rows resolved from σ = 5·10⁵ had {t['rkc_turn']['steps_forward'] - small['rkc']['steps_forward']} "
+                f"window steps against Heun's {t['heun_turn']['steps_forward'] - small['heun']['steps_forward']}: "
+                "RKC2's last long step overshoots the split; the row from 2·10⁵, "
+                f"{t['rkc_turn_2e5']['steps_forward']} forward steps, is resolved).  It is not the round-off of RKC2's stage "
                 "recursion, which set the chain's resolved departure 12 % apart (docs/chain.md): "
                 "with the stages in increment form the network's C is the same (0.0435 resolved, "
                 "0.0427 at the default; measured once, outside the table).  Also measured once "
@@ -789,6 +796,72 @@ def deflated_scaling_section(d):
     return out
 
 
+def turn_seed_section(d):
+    """The reversed branch's seed (bench_turn_seed.py)."""
+    w = {(r["window"], r["h"]): r for r in d["windows"]}
+    diff = {r["h"]: r for r in d["windows"] if r["window"] == "rkc2 - heun"}
+    cross = {(r["approach"], r["window"]): r for r in d["cross"]}
+    seeded = {r["c"]: r for r in d["seeded"]}
+    sc = d["scaling"]
+    out = ["## What selects a network's reversed branch (`bench_turn_seed.py`)", "",
+           f"The network of \"Integrators on a network\" (N = {d['n']:,}) sheared forward with "
+           f"Heun to σ = {d['split'] / 1e5:g}·10⁵, then to the turn (σ ≥ 10⁶) in steps of at most h "
+           "(the *window*) with Heun or with RKC2 held to two stages (`max_stages = 2`: both "
+           "two-stage, second order); reversed with Heun (steps ≤ 1e-8 for the first 10⁻⁶ of "
+           "strain).  C = dx/d(1/σ) between σ = 10⁵ and 10³ on the reversed branch; departure: "
+           "the strain after the turn where the reversed σ first differs by 10 % from the "
+           "forward σ at the same γ.", "",
+           "| window | h | steps | strain | γ at the turn | σ at the turn |", "|---|---|---|---|---|---|"]
+    for (win, h), r in sorted(w.items(), key=lambda kv: (-kv[0][1], kv[0][0])):
+        if win == "rkc2 - heun":
+            continue
+        out.append(f"| {win} | {h:g} | {r['steps']} | {r['strain']:.3g} | {r['gamma_turn']:.12f} | "
+                   f"{r['sigma_turn']:.6f} |")
+    out += ["", "The two turn states at each h (RKC2's − Heun's, node displacements): " +
+            "; ".join(f"h = {h:g}: rms {r['rms']:.2e} a0, largest {r['max']:.2e} a0, spread "
+                      f"over ~{r['participation']:.0f} nodes" for h, r in sorted(diff.items(), reverse=True)) +
+            f".  Halving h divides the difference by {sc['ratio']:.2f} and leaves its direction "
+            f"(cosine {sc['cosine']:.3f} between the two): it is the difference of the two "
+            "methods' leading local errors, ~h², in a direction of their own.", "",
+            "| approach (to σ = 5·10⁵) | window (h = 1e-8) | C | departure |", "|---|---|---|---|"]
+    for (a, win), r in sorted(cross.items()):
+        out.append(f"| {a} | {win} | {r['C']:.5f} | {r['departure']:.3g} |")
+    out += ["", "| Heun's turn state + c × (RKC2's − Heun's) | C | departure |", "|---|---|---|"]
+    for c, r in sorted(seeded.items(), key=lambda kv: (abs(kv[0]), -kv[0])):
+        out.append(f"| c = {c:+g} | {r['C']:.5f} | {r['departure']:.3g} |")
+    hh, hr = cross.get(("heun", "heun")), cross.get(("heun", "rkc2"))
+    p1, m1 = seeded.get(1.0), seeded.get(-1.0)
+    if hh and hr and p1 and m1:
+        out += ["", "**The window decides, by the sign of the seed it leaves along one "
+                f"direction.**  Whatever the approach, a Heun window reverses with C ≈ {hh['C']:.4f} "
+                f"and an RKC2 window with C ≈ {hr['C']:.4f}; the states the two windows leave "
+                f"are {diff[1e-8]['rms']:.1e} a0 rms apart at h = 1e-8, and Heun's state moved by "
+                f"that difference (c = +1) reverses with RKC2's C ({p1['C']:.4f}): the turn state "
+                "alone selects the branch, not the integrator's memory nor its reversed leg.  "
+                f"Moved the other way (c = −1) it stays on Heun's ({m1['C']:.4f}), and 10× "
+                "either way changes C by < 1 % of each branch: the reversed flow amplifies the "
+                "seed's projection on its fastest growing modes, and along this direction its sign "
+                "alone chooses between two reversed branches (random seeds find others: "
+                "\"Integrators on a network\").  The size sets *when*: ±1 depart at "
+                f"{p1['departure']:.2e} and {m1['departure']:.2e}, ±10 at "
+                f"{seeded[10.0]['departure']:.2e} and {seeded[-10.0]['departure']:.2e} — a growth "
+                f"rate ln 10 / Δ ≈ {math.log(10) / (p1['departure'] - seeded[10.0]['departure']):.1e} "
+                "per unit strain, ~7σ at the turn — and unseeded Heun departs at "
+                f"{seeded[0.0]['departure']:.2e}, its own seed along those modes "
+                f"~{math.exp(math.log(10) * (seeded[0.0]['departure'] - p1['departure']) / (p1['departure'] - seeded[10.0]['departure'])):.0f}× "
+                "smaller than the difference of the two methods' states.  Unseeded, the seed is the integrator's own error at the "
+                "turn, whose direction is a property of the method (its error constants): it does "
+                "not change as h → 0, only its size does (~h², which moves the departure by "
+                "ln 4 / rate per halving).  So each method's unseeded C converges with h — to its "
+                "own value; Heun's and ROS2's errors fall on one side, RKC2's (two stages and "
+                "more) on the other.  No integrator's unseeded C is *the* reversed branch's: a "
+                "study of one network's reversal must seed it (`perturb`, \"Integrators on a "
+                "network\"), and C is an ensemble quantity.", ""]
+    out += [f"Measured on {d['date'][:10]} (load average at the start "
+            f"{[round(x, 1) for x in d['load_start']]}: beside two long runs).", ""]
+    return out
+
+
 def cholmod_section(d):
     out = ["## CHOLMOD's settings on a network's N (`bench_cholmod.py`)", "",
            "N = S Sᵀ of a z = 3.8 network at its initial configuration, factorised on one rank by "
@@ -887,6 +960,7 @@ def main():
                      ("deflated_scaling", deflated_scaling_section),
                      ("identity", identity_section),
                      ("network_integrators", network_integrators_section),
+                     ("network_turn_seed", turn_seed_section),
                      ("cholmod", cholmod_section)):
         d = load(name)
         if d is not None:

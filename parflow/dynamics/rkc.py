@@ -38,7 +38,12 @@ forward (gamma at sigma = 1e6 to 1e-10) but its reversed branch's C is 7-9 % abo
 every tolerance tried: the reversed branch depends on what seeds the reversal, and unseeded
 that is each integrator's own error (turn states 7e-7 a0 apart reverse differently); with
 the reversal seeded (leg key perturb = 3e-4) Heun and RKC2 agree per seed to 2.5 %
-(docs/benchmarks.md, "Integrators on a network").
+(docs/benchmarks.md, "Integrators on a network").  It does not converge to Heun's with the
+step: the reversed flow picks its branch by the seed's projection on its fastest growing
+modes (along the direction separating the two methods' turn states, by its sign), and
+RKC2's error at the turn -- even held to two stages, in steps
+of 1e-8 -- lies on the other side from Heun's, its direction fixed as the step shrinks
+(benchmarks/bench_turn_seed.py, "What selects a network's reversed branch").
 """
 from __future__ import annotations
 

@@ -1,0 +1,193 @@
+"""What selects a network's reversed branch when the reversal is not seeded: the integrator's
+own error at the turn, by its direction (docs/benchmarks.md "Integrators on a network", "The
+turn's seed").
+
+The network of bench_network_integrators.py (N = 4 096, z = 3.8) is sheared forward with Heun
+to sigma = 5e5, then to sigma >= 1e6 (the turn) in steps of at most h (the *window*) with
+Heun or with RKC2 held to two stages (``max_stages = 2``: both second-order two-stage steps),
+h = 1e-8 and 5e-9; then
+
+* the turn states: the rms and largest node displacement between the RKC2 and the Heun
+  state at each h, how it scales with h, and the cosine between the two h's differences (a
+  fixed direction if the difference is each method's leading local error, ~h^2);
+* the window decides: every combination of approach (to 5e5) and window integrator (h =
+  1e-8), each reversed with Heun (steps <= 1e-8 for the first 1e-6 of strain, then Heun's
+  defaults): C = dx / d(1/sigma) between sigma = 1e5 and 1e3 on the reversed branch;
+* the seed's direction: the Heun turn state (h = 1e-8) displaced by c x (RKC2's turn state -
+  Heun's) before the same reversal, c = 0, +-1, +-10 (c = 1 is RKC2's turn state itself, on
+  Heun's trajectory).  The displacement goes through the engine's ``perturb`` (replaced here,
+  in this process only: the scene's ``perturb`` key draws a random vector instead), then the
+  rod lengths are restored as for any seed.
+
+Writes docs/benchmarks/network_turn_seed.json.
+
+    python benchmarks/bench_turn_seed.py [--n 4096]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import h5py
+import numpy as np
+
+import results  # noqa: E402  (benchmarks/results.py)
+from common import NETWORK_MODEL, network_file  # noqa: E402  (benchmarks/common.py)
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+
+from petsc4py import PETSc  # noqa: E402
+
+from bench_network_integrators import reverse_C  # noqa: E402
+from parflow.dynamics import engines  # noqa: E402
+from parflow.run import Run  # noqa: E402
+from parflow.scene import load_scene  # noqa: E402
+
+SPLIT = 5e5
+WINDOW = {"heun": 'method = "heun"',
+          "rkc2": 'method = "rkc", max_stages = 2, tol = 0.05'}
+APPROACH = {"heun": 'method = "heun"',
+            "rkc2": 'method = "rkc"\nmax_stages = 2\ntol = 0.05'}
+SEEDS = (0.0, 1.0, -1.0, 10.0, -10.0)
+# forward with the approach's integrator to sigma = SPLIT, then in steps <= {h} to the turn
+FORWARD = """[[protocol.leg]]
+direction = "forward"
+sigma_above = {split:g}
+[[protocol.leg]]
+direction = "forward"
+sigma_above = 1e6
+integrator = {{ {window}, max_dgamma = {h:g} }}
+"""
+# the reversal: Heun, resolved for the first 1e-6 of strain; {perturb}: a seed line or ""
+BACK = """[[protocol.leg]]
+direction = "reverse"
+sigma_below = 10
+sigma_above = 1e7
+strain = 1e-6
+{perturb}integrator = {{ method = "heun", max_dgamma = 1e-8 }}
+[[protocol.leg]]
+direction = "reverse"
+sigma_below = 10
+sigma_above = 1e7
+strain = 1.0
+integrator = {{ method = "heun" }}
+"""
+TAIL = """[integrator]
+{approach}
+[output]
+path = "{path}"
+"""
+
+
+def execute(text: str, path: str) -> dict:
+    """Run the scene ``text`` writing ``path``; its time series and last checkpoint state."""
+    if os.path.exists(path):
+        os.remove(path)
+    t = time.perf_counter()
+    status = Run(load_scene(text), PETSc.COMM_SELF, path, quiet=True).execute()
+    with h5py.File(path) as f:
+        ts = f["timeseries"]
+        d = {k: ts[k][:] for k in ("gamma", "sigma", "direction", "strain", "leg")}
+        d["s"] = f["checkpoint/s"][:]
+    d["status"], d["wall"] = status, time.perf_counter() - t
+    return d
+
+
+def departure(d) -> float:
+    """Strain after the turn where the reversed sigma first differs by 10 % from the forward
+    sigma at the same gamma."""
+    fw, rv = d["direction"] > 0, d["direction"] < 0
+    order = np.argsort(d["gamma"][fw])
+    s_fw = np.interp(d["gamma"][rv], d["gamma"][fw][order], d["sigma"][fw][order])
+    off = np.abs(np.log(d["sigma"][rv] / s_fw)) > np.log(1.1)
+    if not off.any():
+        return float("nan")
+    return float(d["gamma"][fw][-1] - d["gamma"][rv][int(np.argmax(off))])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=4096)
+    ap.add_argument("--folder", default=os.path.join(ROOT, "out", "bench_network_integrators"))
+    args = ap.parse_args()
+    os.makedirs(args.folder, exist_ok=True)
+    network = network_file(args.folder, args.n, PETSc.COMM_SELF)
+    model = NETWORK_MODEL.format(n=args.n, network=network)
+    load_start = os.getloadavg()
+
+    def path(name):
+        return os.path.join(args.folder, f"turn_seed_{name}_N{args.n}.h5")
+
+    # 1. the turn states
+    turns, windows = {}, []
+    for h in (1e-8, 5e-9):
+        for w in ("heun", "rkc2"):
+            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW[w], h=h)
+                        + TAIL.format(approach=APPROACH["heun"], path=path(f"{w}_{h:g}")),
+                        path(f"{w}_{h:g}"))
+            win = d["leg"] == d["leg"].max()
+            turns[(w, h)] = d["s"]
+            windows.append(dict(window=w, h=h, status=d["status"], steps=int(win.sum()),
+                                strain=float(d["strain"][win][-1] - d["strain"][~win][-1]),
+                                gamma_turn=float(d["gamma"][-1]), sigma_turn=float(d["sigma"][-1])))
+            print(f"turn, window {w}, h = {h:g}: {windows[-1]}", flush=True)
+    diffs = {}
+    for h in (1e-8, 5e-9):
+        n = np.linalg.norm(turns[("rkc2", h)] - turns[("heun", h)], axis=1)
+        diffs[h] = (turns[("rkc2", h)] - turns[("heun", h)]).ravel()
+        windows.append(dict(window="rkc2 - heun", h=h, rms=float(np.sqrt(np.mean(n ** 2))),
+                            max=float(n.max()), participation=float((n ** 2).sum() ** 2 / (n ** 4).sum())))
+    a, b = diffs[1e-8], diffs[5e-9]
+    scaling = dict(ratio=float(np.linalg.norm(a) / np.linalg.norm(b)),
+                   cosine=float(a @ b / np.linalg.norm(a) / np.linalg.norm(b)))
+    print(f"RKC2 - Heun at the turn: |d(1e-8)| / |d(5e-9)| = {scaling['ratio']:.2f}, cosine "
+          f"{scaling['cosine']:.4f}", flush=True)
+
+    # 2. the window decides (approach x window, h = 1e-8, Heun reversal)
+    cross = []
+    for ap_ in ("heun", "rkc2"):
+        for w in ("heun", "rkc2"):
+            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW[w], h=1e-8)
+                        + BACK.format(perturb="")
+                        + TAIL.format(approach=APPROACH[ap_], path=path(f"cross_{ap_}_{w}")),
+                        path(f"cross_{ap_}_{w}"))
+            cross.append(dict(approach=ap_, window=w, status=d["status"], C=reverse_C(d),
+                              departure=departure(d)))
+            print(f"approach {ap_}, window {w}: {cross[-1]}", flush=True)
+
+    # 3. the seed's direction: Heun's turn state + c (RKC2's - Heun's), h = 1e-8
+    vec = turns[("rkc2", 1e-8)] - turns[("heun", 1e-8)]
+    scale = [0.0]
+
+    def along(self, rms, seed, leg):       # in place of the random seed of ``perturb``
+        s0 = self.s
+        s, _, _ = self.system.project(s0 + scale[0] * vec, self.gamma,
+                                      tol=self.control.length_tol)
+        self.state.s = s
+        self.F = self.system.evaluate(s, self.gamma, what="perturbed force")
+        return float(np.sqrt(np.mean(np.sum((s - s0) ** 2, axis=1))))
+
+    random_seed, engines.BondedEngine.perturb = engines.BondedEngine.perturb, along
+    seeded = []
+    try:
+        for c in SEEDS:
+            scale[0] = c
+            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW["heun"], h=1e-8)
+                        + BACK.format(perturb="perturb = 1e-30\n")
+                        + TAIL.format(approach=APPROACH["heun"], path=path(f"seed_{c:g}")),
+                        path(f"seed_{c:g}"))
+            seeded.append(dict(c=c, status=d["status"], C=reverse_C(d), departure=departure(d)))
+            print(f"seed c = {c:g}: {seeded[-1]}", flush=True)
+    finally:
+        engines.BondedEngine.perturb = random_seed
+    results.write("network_turn_seed", dict(
+        benchmark="bench_turn_seed.py", n=args.n, split=SPLIT, date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        load_start=load_start, windows=windows, scaling=scaling, cross=cross, seeded=seeded))
+    print(f"wrote {results.path('network_turn_seed')}")
+
+
+if __name__ == "__main__":
+    main()
