@@ -34,7 +34,7 @@ import h5py
 import numpy as np
 
 import results  # noqa: E402  (benchmarks/results.py)
-from common import NETWORK_MODEL, network_file  # noqa: E402  (benchmarks/common.py)
+from common import FORWARD_IN_TWO, NETWORK_MODEL, network_file  # noqa: E402  (benchmarks/common.py)
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
@@ -53,13 +53,7 @@ APPROACH = {"heun": 'method = "heun"',
             "rkc2": 'method = "rkc"\nmax_stages = 2\ntol = 0.05'}
 SEEDS = (0.0, 1.0, -1.0, 10.0, -10.0)
 # forward with the approach's integrator to sigma = SPLIT, then in steps <= {h} to the turn
-FORWARD = """[[protocol.leg]]
-direction = "forward"
-sigma_above = {split:g}
-[[protocol.leg]]
-direction = "forward"
-sigma_above = 1e6
-integrator = {{ {window}, max_dgamma = {h:g} }}
+FORWARD = FORWARD_IN_TWO + """integrator = {{ {window}, max_dgamma = {h:g} }}
 """
 # the reversal: Heun, resolved for the first 1e-6 of strain; {perturb}: a seed line or ""
 BACK = """[[protocol.leg]]
