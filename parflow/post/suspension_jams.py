@@ -98,8 +98,8 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
     tbs = float(jam.get("tau_b_shear", jam.get("tau_b", nan))) if jammed else nan
     rate, to = float(model.get("compress_rate", 0.0)), float(model.get("compress_to", nan))
     strain = ts.get("strain", ts.get("gamma", []))
-    if rate > 0 and phi_ts is not None:
-        at_phi = strain_at_final_phi(strain, phi_ts, to)
+    if rate > 0:            # exposed from where phi reached compress_to (no phi column: unknown)
+        at_phi = strain_at_final_phi(strain, phi_ts, to) if phi_ts is not None else nan
     else:
         at_phi = float(strain[-1]) if len(strain) else nan
     return dict(source=source, sample=int(sample), seed=int(attrs.get("sample_seed", -1)),
