@@ -19,9 +19,15 @@ h = 1e-8 and 5e-9; then
   in this process only: the scene's ``perturb`` key draws a random vector instead), then the
   rod lengths are restored as for any seed.
 
-Writes docs/benchmarks/network_turn_seed.json.
+* the resolution (``--part resolution``): the window and the reversal's first 1e-6 both in
+  steps <= h, unseeded, h = 1e-8 ... 1.25e-9 for Heun and 1e-8, 2.5e-9 for RKC2: does each
+  method's C stay with h, and how does its departure move (a seed ~h^2 moves it by
+  ln 4 / rate per halving)?
 
-    python benchmarks/bench_turn_seed.py [--n 4096]
+Writes docs/benchmarks/network_turn_seed.json (``--part resolution`` adds its rows to the
+file's other parts, ``--part states`` writes those and keeps the resolution rows).
+
+    python benchmarks/bench_turn_seed.py [--n 4096] [--part all|states|resolution]
 """
 from __future__ import annotations
 
@@ -52,6 +58,8 @@ WINDOW = {"heun": 'method = "heun"',
 APPROACH = {"heun": 'method = "heun"',
             "rkc2": 'method = "rkc"\nmax_stages = 2\ntol = 0.05'}
 SEEDS = (0.0, 1.0, -1.0, 10.0, -10.0)
+RESOLUTION = (("heun", 1e-8), ("heun", 5e-9), ("heun", 2.5e-9), ("heun", 1.25e-9),
+              ("rkc2", 1e-8), ("rkc2", 2.5e-9))
 # forward with the approach's integrator to sigma = SPLIT, then in steps <= {h} to the turn
 FORWARD = FORWARD_IN_TWO + """integrator = {{ {window}, max_dgamma = {h:g} }}
 """
@@ -106,14 +114,43 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=4096)
     ap.add_argument("--folder", default=os.path.join(ROOT, "out", "bench_network_integrators"))
+    ap.add_argument("--part", choices=("all", "states", "resolution"), default="all")
     args = ap.parse_args()
     os.makedirs(args.folder, exist_ok=True)
     network = network_file(args.folder, args.n, PETSc.COMM_SELF)
     model = NETWORK_MODEL.format(n=args.n, network=network)
     load_start = os.getloadavg()
+    old = {}
+    if os.path.exists(results.path("network_turn_seed")):
+        import json
+        with open(results.path("network_turn_seed")) as fh:
+            old = json.load(fh)
 
     def path(name):
         return os.path.join(args.folder, f"turn_seed_{name}_N{args.n}.h5")
+
+    resolution = old.get("resolution", [])
+    if args.part in ("all", "resolution"):
+        resolution = []
+        for w, h in RESOLUTION:
+            back = BACK.replace("max_dgamma = 1e-8", f"max_dgamma = {h:g}")
+            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW[w], h=h)
+                        + back.format(perturb="")
+                        + TAIL.format(approach=APPROACH["heun"], path=path(f"res_{w}_{h:g}")),
+                        path(f"res_{w}_{h:g}"))
+            resolution.append(dict(window=w, h=h, status=d["status"], C=reverse_C(d),
+                                   departure=departure(d),
+                                   gamma_turn=float(d["gamma"][d["direction"] > 0][-1]),
+                                   date=time.strftime("%Y-%m-%d %H:%M:%S")))
+            print(f"resolution: {resolution[-1]}", flush=True)
+    if args.part == "resolution":
+        if not old:
+            raise SystemExit("--part resolution adds to an existing network_turn_seed.json: "
+                             "run --part states (or all) first")
+        old["resolution"] = resolution
+        results.write("network_turn_seed", old)
+        print(f"wrote {results.path('network_turn_seed')}")
+        return
 
     # 1. the turn states
     turns, windows = {}, []
@@ -179,7 +216,8 @@ def main():
         engines.BondedEngine.perturb = random_seed
     results.write("network_turn_seed", dict(
         benchmark="bench_turn_seed.py", n=args.n, split=SPLIT, date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        load_start=load_start, windows=windows, scaling=scaling, cross=cross, seeded=seeded))
+        load_start=load_start, windows=windows, scaling=scaling, cross=cross, seeded=seeded,
+        resolution=resolution))
     print(f"wrote {results.path('network_turn_seed')}")
 
 

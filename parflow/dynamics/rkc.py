@@ -41,9 +41,10 @@ the reversal seeded (leg key perturb = 3e-4) Heun and RKC2 agree per seed to 2.5
 (docs/benchmarks.md, "Integrators on a network").  It does not converge to Heun's with the
 step: the reversed flow picks its branch by the seed's projection on its fastest growing
 modes (along the direction separating the two methods' turn states, by its sign), and
-RKC2's error at the turn -- even held to two stages, in steps
-of 1e-8 -- lies on the other side from Heun's, its direction fixed as the step shrinks
-(benchmarks/bench_turn_seed.py, "What selects a network's reversed branch").
+RKC2's error at the turn -- even held to two stages, in steps of 1e-8 -- lies on the other
+side from Heun's, its direction fixed as the step shrinks (Heun's own C is not converged
+either: it changes branch below steps of 5e-9; benchmarks/bench_turn_seed.py, "What selects
+a network's reversed branch").
 """
 from __future__ import annotations
 
