@@ -150,9 +150,9 @@ def load_table(path: str) -> list[dict]:
 def read_runs(paths) -> list[dict]:
     """The records of single suspension run files (``*.h5``: e.g. the flowing seeds of
     runs/) among ``paths`` and in the folders among them (one level down), of runs that have
-    ended or were stopped (source: the file's name, sample -1: not one of an ensemble).  A file named as a path must
-    be a readable suspension run (ValueError naming it otherwise); one found in a folder that
-    is not is passed over."""
+    ended or were stopped (source: the file's name; sample -1: not one of an ensemble).  A
+    file named as a path must be a readable suspension run (ValueError naming it otherwise);
+    one found in a folder that is not is passed over."""
     named = {p for p in paths if p.endswith(".h5") and os.path.isfile(p)}
     _, files = find_sources(paths, ".h5")
     out = []
