@@ -1,6 +1,6 @@
 """What selects a network's reversed branch when the reversal is not seeded: the integrator's
-own error at the turn, by its direction (docs/benchmarks.md "Integrators on a network", "The
-turn's seed").
+own error at the turn, by its direction (docs/benchmarks.md "What selects a network's
+reversed branch", after "Integrators on a network").
 
 The network of bench_network_integrators.py (N = 4 096, z = 3.8) is sheared forward with Heun
 to sigma = 5e5, then to sigma >= 1e6 (the turn) in steps of at most h (the *window*) with
@@ -32,6 +32,7 @@ file's other parts, ``--part states`` writes those and keeps the resolution rows
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -49,6 +50,7 @@ from petsc4py import PETSc  # noqa: E402
 
 from bench_network_integrators import reverse_C  # noqa: E402
 from parflow.dynamics import engines  # noqa: E402
+from parflow.post.chain import reversal_departure  # noqa: E402
 from parflow.run import Run  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
@@ -92,22 +94,16 @@ def execute(text: str, path: str) -> dict:
     status = Run(load_scene(text), PETSc.COMM_SELF, path, quiet=True).execute()
     with h5py.File(path) as f:
         ts = f["timeseries"]
-        d = {k: ts[k][:] for k in ("gamma", "sigma", "direction", "strain", "leg")}
+        d = {k: ts[k][:] for k in ("gamma", "sigma", "V2", "direction", "strain", "leg")}
         d["s"] = f["checkpoint/s"][:]
     d["status"], d["wall"] = status, time.perf_counter() - t
     return d
 
 
 def departure(d) -> float:
-    """Strain after the turn where the reversed sigma first differs by 10 % from the forward
-    sigma at the same gamma."""
-    fw, rv = d["direction"] > 0, d["direction"] < 0
-    order = np.argsort(d["gamma"][fw])
-    s_fw = np.interp(d["gamma"][rv], d["gamma"][fw][order], d["sigma"][fw][order])
-    off = np.abs(np.log(d["sigma"][rv] / s_fw)) > np.log(1.1)
-    if not off.any():
-        return float("nan")
-    return float(d["gamma"][fw][-1] - d["gamma"][rv][int(np.argmax(off))])
+    """Strain after the turn where the reversed branch first differs by 10 % from the forward
+    one at the same gamma (sigma and <V^2> alike: the cell's area is fixed)."""
+    return reversal_departure(d, level=math.log(1.1))
 
 
 def main():
@@ -126,18 +122,19 @@ def main():
         with open(results.path("network_turn_seed")) as fh:
             old = json.load(fh)
 
-    def path(name):
-        return os.path.join(args.folder, f"turn_seed_{name}_N{args.n}.h5")
+    def case(name, window, h, back="", approach="heun"):
+        """Forward (the approach's integrator to SPLIT, then ``window`` in steps <= h), then
+        ``back`` (the reversal, or nothing); the run's columns and final state."""
+        path = os.path.join(args.folder, f"turn_seed_{name}_N{args.n}.h5")
+        return execute(model + FORWARD.format(split=SPLIT, window=WINDOW[window], h=h) + back
+                       + TAIL.format(approach=APPROACH[approach], path=path), path)
 
     resolution = old.get("resolution", [])
     if args.part in ("all", "resolution"):
         resolution = []
         for w, h in RESOLUTION:
             back = BACK.replace("max_dgamma = 1e-8", f"max_dgamma = {h:g}")
-            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW[w], h=h)
-                        + back.format(perturb="")
-                        + TAIL.format(approach=APPROACH["heun"], path=path(f"res_{w}_{h:g}")),
-                        path(f"res_{w}_{h:g}"))
+            d = case(f"res_{w}_{h:g}", w, h, back.format(perturb=""))
             resolution.append(dict(window=w, h=h, status=d["status"], C=reverse_C(d),
                                    departure=departure(d),
                                    gamma_turn=float(d["gamma"][d["direction"] > 0][-1]),
@@ -156,9 +153,7 @@ def main():
     turns, windows = {}, []
     for h in (1e-8, 5e-9):
         for w in ("heun", "rkc2"):
-            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW[w], h=h)
-                        + TAIL.format(approach=APPROACH["heun"], path=path(f"{w}_{h:g}")),
-                        path(f"{w}_{h:g}"))
+            d = case(f"{w}_{h:g}", w, h)
             win = d["leg"] == d["leg"].max()
             turns[(w, h)] = d["s"]
             windows.append(dict(window=w, h=h, status=d["status"], steps=int(win.sum()),
@@ -181,10 +176,7 @@ def main():
     cross = []
     for ap_ in ("heun", "rkc2"):
         for w in ("heun", "rkc2"):
-            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW[w], h=1e-8)
-                        + BACK.format(perturb="")
-                        + TAIL.format(approach=APPROACH[ap_], path=path(f"cross_{ap_}_{w}")),
-                        path(f"cross_{ap_}_{w}"))
+            d = case(f"cross_{ap_}_{w}", w, 1e-8, BACK.format(perturb=""), approach=ap_)
             cross.append(dict(approach=ap_, window=w, status=d["status"], C=reverse_C(d),
                               departure=departure(d)))
             print(f"approach {ap_}, window {w}: {cross[-1]}", flush=True)
@@ -206,10 +198,7 @@ def main():
     try:
         for c in SEEDS:
             scale[0] = c
-            d = execute(model + FORWARD.format(split=SPLIT, window=WINDOW["heun"], h=1e-8)
-                        + BACK.format(perturb="perturb = 1e-30\n")
-                        + TAIL.format(approach=APPROACH["heun"], path=path(f"seed_{c:g}")),
-                        path(f"seed_{c:g}"))
+            d = case(f"seed_{c:g}", "heun", 1e-8, BACK.format(perturb="perturb = 1e-30\n"))
             seeded.append(dict(c=c, status=d["status"], C=reverse_C(d), departure=departure(d)))
             print(f"seed c = {c:g}: {seeded[-1]}", flush=True)
     finally:
