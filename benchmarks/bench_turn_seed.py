@@ -186,12 +186,7 @@ def main():
     scale = [0.0]
 
     def along(self, rms, seed, leg):       # in place of the random seed of ``perturb``
-        s0 = self.s
-        s, _, _ = self.system.project(s0 + scale[0] * vec, self.gamma,
-                                      tol=self.control.length_tol)
-        self.state.s = s
-        self.F = self.system.evaluate(s, self.gamma, what="perturbed force")
-        return float(np.sqrt(np.mean(np.sum((s - s0) ** 2, axis=1))))
+        return self.displace(scale[0] * vec)
 
     random_seed, engines.BondedEngine.perturb = engines.BondedEngine.perturb, along
     seeded = []

@@ -96,13 +96,18 @@ class BondedEngine:
 
     def perturb(self, rms: float, seed: int, leg: int) -> float:
         """Displace every node by a Gaussian vector of ``rms`` a0 per coordinate (the same
-        numbers on every rank: seeded by (seed, leg)), restore the rod lengths and solve the
-        force there; the rms displacement after the projection."""
+        numbers on every rank: seeded by (seed, leg)) and :meth:`displace` there; the rms
+        displacement after the projection."""
         rng = np.random.default_rng([int(seed) % 2**63, int(leg), 0x9E3779B9])
+        return self.displace(rms * rng.standard_normal(self.s.shape) @ np.linalg.inv(self.F.h).T)
+
+    def displace(self, ds: np.ndarray) -> float:
+        """Move the nodes by ``ds`` (fractional coordinates, one row per node), restore the
+        rod lengths and solve the force there; the rms displacement (a0) after the
+        projection."""
         h = self.F.h
         r0 = self.s @ h.T
-        s = self.s + rms * rng.standard_normal(self.s.shape) @ np.linalg.inv(h).T
-        s, _, _ = self.system.project(s, self.gamma, tol=self.control.length_tol)
+        s, _, _ = self.system.project(self.s + ds, self.gamma, tol=self.control.length_tol)
         self.state.s = s
         self.F = self.system.evaluate(s, self.gamma, what="perturbed force")
         d = s @ h.T - r0
