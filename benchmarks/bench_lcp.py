@@ -26,6 +26,11 @@ solves, factorisations, and the largest difference of V = S^T f from the recorde
         # (hard_discs.GAP_ROUNDOFF), on the recorded creeping N = 8192 state
         # (tests/reference/creeping_state.npz): its LCP at steps 1e-10 - 1e-6, then stepping
         # on for --seconds each; writes docs/benchmarks/lcp_closed_gaps.json
+    python benchmarks/bench_lcp.py --profile RUN --steps 60
+        # where the default LCP's time goes (fresh factorisations, the bordered updates'
+        # column solves, single solves, the rest), the unit costs on the final active sets,
+        # and CG on a step's N_AA preconditioned by the previous step's factor of the same
+        # contacts; writes docs/benchmarks/lcp_profile.json
 """
 from __future__ import annotations
 
@@ -80,7 +85,7 @@ def record(path: str, steps: int) -> tuple[list, dict]:
             sim.step(1)
     finally:
         su.solve_lcp = solve
-    meta = dict(file=os.path.relpath(path, ROOT), phi=float(state.meta.get("phi", np.nan)),
+    meta = dict(file=os.path.relpath(path, ROOT), phi=float(sim.phi),
                 N=int(state.n), gamma_from=float(g0), gamma_to=float(sim.state.gamma),
                 steps=steps, sigma_end=float(sim.sigma))
     return out, meta
@@ -255,6 +260,151 @@ def budget(run: str, steps: int) -> int:
     return 0
 
 
+def _pcg(M, b, prec, rtol: float = 1e-13, maxit: int = 200) -> int:
+    """Iterations of conjugate gradients on M x = b preconditioned by ``prec`` (x0 = prec b)
+    to a relative residual ``rtol`` (maxit + 1: not reached)."""
+    x = prec(b)
+    r = b - M @ x
+    z = prec(r)
+    p, rz, nb = z.copy(), float(r @ z), float(np.linalg.norm(b))
+    for it in range(maxit + 1):
+        if float(np.linalg.norm(r)) <= rtol * nb:
+            return it
+        Ap = M @ p
+        a = rz / float(p @ Ap)
+        x += a * p
+        r -= a * Ap
+        z = prec(r)
+        rz, rz0 = float(r @ z), rz
+        p = z + (rz / rz0) * p
+    return maxit + 1
+
+
+def profile(run: str, steps: int) -> int:
+    """Where the default LCP solve's time goes, on the LCPs of ``steps`` steps from the
+    checkpoint of ``run`` (one process): every SelfFactor call timed by kind -- a fresh
+    factorisation (analysis + numeric + its first solve), the multi-right-hand-side solves
+    of the bordered updates' new columns, single solves -- and the rest (sparse products,
+    Schur complements, the pivoting's own work).  Then, on the LCPs' final active sets: a
+    fresh factorisation against a numeric refactorisation of the same pattern, one solve,
+    the multi-right-hand-side solve per column; the contact changes from the warm set to
+    the solution; and conjugate gradients on a step's warm set N_AA preconditioned by the
+    previous LCP's factor of the same contacts (the previous step's values) -- how far a
+    factor kept across steps would carry."""
+    from petsc4py import PETSc
+
+    import parflow.dynamics.lcp as co
+    from parflow.algebra.solvers import SelfFactor
+
+    if not os.path.exists(run):
+        print(f"bench_lcp: no such run file {run!r}", file=sys.stderr)
+        return 2
+    instances, meta = record(run, steps)
+    # 1. the split of the LCP time, two passes (the second is reported; the first warms up)
+    split = None
+    solve0, init0 = SelfFactor.solve, SelfFactor.__init__
+    for _ in range(2):
+        acc = dict(setup=0.0, factorise=0.0, columns=0.0, solve=0.0)
+        cnt = dict(setup=0, factorise=0, columns=0, column_rhs=0, solve=0)
+
+        def init(self, M, kind, _acc=acc, _cnt=cnt):
+            t0 = time.perf_counter()
+            init0(self, M, kind)
+            _acc["setup"] += time.perf_counter() - t0
+            _cnt["setup"] += 1
+
+        def solve(self, rhs, _acc=acc, _cnt=cnt):
+            kind = ("columns" if rhs.ndim == 2 else
+                    "factorise" if self.kind == "cholmod" and not self.factored else "solve")
+            t0 = time.perf_counter()
+            out = solve0(self, rhs)
+            _acc[kind] += time.perf_counter() - t0
+            _cnt[kind] += 1
+            if rhs.ndim == 2:
+                _cnt["column_rhs"] += rhs.shape[1]
+            return out
+
+        SelfFactor.__init__, SelfFactor.solve = init, solve
+        try:
+            row = measure(instances)
+        finally:
+            SelfFactor.__init__, SelfFactor.solve = init0, solve0
+        n = row["lcps"]
+        split = dict(lcps=n, ms_per_lcp=row["ms_per_lcp"], solves_per_lcp=row["solves_per_lcp"],
+                     factorisations_per_lcp=row["factorisations_per_lcp"],
+                     ms_factorise=1e3 * acc["factorise"] / n, ms_setup=1e3 * acc["setup"] / n,
+                     ms_columns=1e3 * acc["columns"] / n, ms_solve=1e3 * acc["solve"] / n,
+                     columns_per_lcp=cnt["column_rhs"] / n, solves_single_per_lcp=cnt["solve"] / n,
+                     column_calls_per_lcp=cnt["columns"] / n)
+        split["ms_rest"] = split["ms_per_lcp"] - sum(split[k] for k in (
+            "ms_factorise", "ms_setup", "ms_columns", "ms_solve"))
+    print("split", split, flush=True)
+    # 2. unit costs on the final active sets, and the changes per LCP
+    unit = dict(fresh=[], numeric=[], solve=[], per_column={1: [], 16: [], 64: []})
+    changes, sizes = [], []
+    rng = np.random.default_rng(0)
+    for S, q, warm, f in instances:
+        A = f > 0
+        if warm is not None:
+            changes.append(int(np.count_nonzero(A != warm)))
+    for S, q, warm, f in instances[::2]:
+        N = (S @ S.T).tocsr()
+        idx = np.flatnonzero(f > 0)
+        M = N[idx][:, idx].tocsr()
+        rhs = -q[idx]
+        sizes.append(idx.size)
+        t0 = time.perf_counter()
+        fac = SelfFactor(M, "cholmod")
+        fac.solve(rhs)
+        unit["fresh"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        for _ in range(5):
+            fac.solve(rhs)
+        unit["solve"].append((time.perf_counter() - t0) / 5)
+        for k in unit["per_column"]:
+            B = rng.standard_normal((idx.size, k))
+            t0 = time.perf_counter()
+            fac.solve(B)
+            unit["per_column"][k].append((time.perf_counter() - t0) / k)
+        # the same pattern, new values: PETSc refactorises numerically, keeping the analysis
+        it = PETSc.IntType
+        fac.A.setValuesCSR(M.indptr.astype(it), M.indices.astype(it), M.data * (1 + 1e-9))
+        fac.A.assemble()
+        t0 = time.perf_counter()
+        fac.ksp.setOperators(fac.A)
+        fac.solve(rhs)
+        unit["numeric"].append(time.perf_counter() - t0)
+        fac.destroy()
+    med = lambda v: 1e3 * float(np.median(v))          # noqa: E731
+    units = dict(rows=int(np.median(sizes)), ms_fresh=med(unit["fresh"]),
+                 ms_numeric=med(unit["numeric"]), ms_solve=med(unit["solve"]),
+                 ms_per_column={str(k): med(v) for k, v in unit["per_column"].items()},
+                 changes_median=float(np.median(changes)), changes_mean=float(np.mean(changes)))
+    print("units", units, flush=True)
+    # 3. the previous LCP's factor (same contacts, the last step's values) as a preconditioner
+    its, lcps = [], []
+    for (S0, q0, w0, f0), (S1, q1, w1, f1) in zip(instances[:-1], instances[1:]):
+        A0 = f0 > 0
+        if w1 is None or int(w1.sum()) != int(A0.sum()):
+            continue                    # a contact of the set left the candidates
+        N0, N1 = (S0 @ S0.T).tocsr(), (S1 @ S1.T).tocsr()
+        M0, M1 = N0[A0][:, A0].tocsr(), N1[w1][:, w1].tocsr()
+        if not (np.array_equal(M0.indptr, M1.indptr) and np.array_equal(M0.indices, M1.indices)):
+            continue                    # not the same contacts in the same order
+        fac = SelfFactor(M0, "cholmod")
+        its.append(_pcg(M1, -q1[w1], fac.solve))
+        lcps.append(float(abs(M1 - M0).max() / abs(M0).max()))
+        fac.destroy()
+    carry = dict(pairs=len(its), pcg_iterations_median=float(np.median(its)) if its else None,
+                 pcg_iterations_max=int(max(its)) if its else None,
+                 rel_change_median=float(np.median(lcps)) if lcps else None, rtol=1e-13)
+    print("carry", carry, flush=True)
+    data = dict(meta, split=split, units=units, carry=carry,
+                measured=time.strftime("%Y-%m-%d %H:%M:%S"), loadavg=list(os.getloadavg()))
+    print("wrote", results.write("lcp_profile", data))
+    return 0
+
+
 CREEPING_STATE = os.path.join(ROOT, "tests", "reference", "creeping_state.npz")
 
 
@@ -420,6 +570,11 @@ def main(argv=None) -> int:
                          "RETRY_FACTOR x its size, stepping on from each STATE (.npz or run "
                          "file; default: the creeping state and the phi = 0.840 run file); "
                          "writes docs/benchmarks/lcp_retry.json")
+    ap.add_argument("--profile", metavar="RUN",
+                    help="where the LCP time goes on --steps steps from RUN (factorisations, "
+                         "bordered columns, solves, the rest), the unit costs, and the "
+                         "previous step's factor as a preconditioner; writes "
+                         "docs/benchmarks/lcp_profile.json")
     ap.add_argument("--rounds", type=int, default=2, help="rounds of each variant (--retry)")
     ap.add_argument("--seconds", type=float, default=120.0,
                     help="stepping time of each variant (--closed-gaps, --retry)")
@@ -435,6 +590,8 @@ def main(argv=None) -> int:
         return 2
     if a.budget:
         return budget(a.budget, a.steps)
+    if a.profile:
+        return profile(a.profile, a.steps)
     if a.factors:
         return factors(a.factors, a.steps, a.repeat)
     if a.strategies:
