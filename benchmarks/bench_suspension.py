@@ -20,6 +20,13 @@ retries, and the step-error indicators -- the share of sigma from gaps closed wi
         --seed 2 --strain 0.12
     python benchmarks/bench_suspension.py --dmax 0.04,0.02,0.01,0.005 --phi 0.820 \
         --seed 1 --strain 1.5 --from-strain 0.5
+
+Where a long run's wall time goes by stress (``--by-sigma``: run files that exist, e.g. the
+flowing phi = 0.840 seeds; rows at the final packing fraction only): for each bin of sigma,
+the steps, strain and wall time there, seconds per unit strain, ms per step and the mean
+step; writes docs/benchmarks/suspension_by_sigma.json:
+
+    python benchmarks/bench_suspension.py --by-sigma out/suspension_phi0.840_flowing_seed*.h5
 """
 from __future__ import annotations
 
@@ -164,6 +171,46 @@ def dmax_trade(a) -> None:
     print(results.write(name, data))
 
 
+SIGMA_EDGES = (0.0, 100.0, 200.0, 400.0, 1e3, 1e4, np.inf)
+
+
+def by_sigma(path: str, edges=SIGMA_EDGES) -> dict:
+    """The wall time of one suspension run file by bins of sigma, over the rows at its final
+    packing fraction (compress_to when the scene compresses, else every step).  A step's wall
+    time is the difference of the recorded clock; the clock restarts with each sitting (a
+    restart), where the first row's own clock is its time."""
+    with h5py.File(path, "r") as f:
+        ts = {k: f["timeseries"][k][()] for k in f["timeseries"]}
+        a = dict(f.attrs)
+        phi_final = float(f["model"].attrs.get("phi", np.nan))
+        n_discs = int(f["initial/s"].shape[0]) if "initial/s" in f else 0
+    wall, step = ts["wall"], ts["step"]
+    dw = np.diff(wall, prepend=0.0)
+    dw = np.where(dw < 0, wall, dw)
+    rows = step > 0
+    if "phi" in ts:
+        rows &= ts["phi"] >= float(np.max(ts["phi"])) - 1e-12
+        phi_final = float(np.max(ts["phi"]))
+    dg, sig = np.abs(ts["dgamma"]), ts["sigma"]
+    strain, seconds = float(dg[rows].sum()), float(dw[rows].sum())
+    bins = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        b = rows & (sig > lo) & (sig <= hi)
+        n = int(b.sum())
+        if n == 0:
+            continue
+        s, w = float(dg[b].sum()), float(dw[b].sum())
+        bins.append(dict(sigma_lo=lo, sigma_hi=hi, steps=n, strain=s, seconds=round(w, 1),
+                         s_per_strain=w / s, ms_per_step=1e3 * w / n, mean_dgamma=s / n,
+                         strain_share=s / strain, wall_share=w / seconds,
+                         lcp_share=float(ts["t_lcp"][b].sum()) / w,
+                         factorizations_per_step=float(np.mean(ts["factorizations"][b]))))
+    return dict(file=os.path.relpath(path, ROOT), status=str(a.get("status", "")),
+                phi=round(phi_final, 5), N=n_discs, steps=int(rows.sum()),
+                strain=strain, seconds=round(seconds, 1), strain_per_hour=3600 * strain / seconds,
+                sigma_median=float(np.median(sig[rows])), bins=bins)
+
+
 def run(scene: str, out: str, ranks: int) -> None:
     cmd = [sys.executable, "-m", "parflow.shear", scene, "--output", out, "--overwrite",
            "--quiet", "--no-plots"]
@@ -186,7 +233,27 @@ def main():
                    help="with --dmax: the indicators are taken past this strain")
     p.add_argument("--name", default=None, help="with --dmax: the JSON's name "
                    "(default suspension_dmax)")
+    p.add_argument("--by-sigma", nargs="+", metavar="RUN",
+                   help="the wall time of these run files by bins of sigma (rows at the final "
+                        "phi); writes docs/benchmarks/suspension_by_sigma.json")
     a = p.parse_args()
+    if a.by_sigma:
+        missing = [x for x in a.by_sigma if not os.path.exists(x)]
+        if missing:
+            print(f"bench_suspension: no such run file {missing[0]!r}", file=sys.stderr)
+            sys.exit(2)
+        recs = [by_sigma(x) for x in sorted(a.by_sigma)]
+        for r in recs:
+            print(r["file"], f"{r['strain']:.3f} strain, {r['strain_per_hour']:.2f} strain/h")
+            for b in r["bins"]:
+                print(f"  sigma in ({b['sigma_lo']:g}, {b['sigma_hi']:g}]: {b['steps']} steps, "
+                      f"{b['s_per_strain']:.0f} s per unit strain, {b['ms_per_step']:.0f} ms a step")
+        data = dict(benchmark="suspension wall time by sigma", date=time.strftime("%Y-%m-%d %H:%M:%S"),
+                    command="python3 benchmarks/bench_suspension.py --by-sigma " + " ".join(
+                        os.path.relpath(x, ROOT) for x in sorted(a.by_sigma)),
+                    runs=recs)
+        print(results.write("suspension_by_sigma", data))
+        return
     if a.dmax is not None:
         if "," in a.phi and a.from_runs is None:
             p.error("--dmax takes one --phi, e.g. --phi 0.840")

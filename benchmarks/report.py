@@ -193,6 +193,28 @@ def suspension_dmax_section(d):
     return out
 
 
+def suspension_by_sigma_section(d):
+    out = ["## Suspension: where a long run's time goes, by σ (`bench_suspension.py --by-sigma`)", "",
+           "Run files that exist, read again: the rows at each run's final packing fraction, "
+           "binned by the σ of the step (the clock of each step from the run file; the load of "
+           "the machine while the run went is not the same from run to run).  s per unit "
+           "strain is the bin's wall time over its strain; 3 strain per hour is 1 200 s per "
+           "unit strain.", "",
+           "| run (N, φ, status) | σ | steps | strain share | wall share | s per unit strain | ms per step | mean Δγ | factorisations per step |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in d["runs"]:
+        where = (f"`{os.path.basename(r['file'])}` ({r['N']}, {r['phi']:.3f}, {r['status']}; "
+                 f"{r['strain']:.2f} strain, {r['strain_per_hour']:.2f} per hour)")
+        for b in r["bins"]:
+            hi = "∞" if b["sigma_hi"] == float("inf") else f"{b['sigma_hi']:g}"
+            out.append(f"| {where} | {b['sigma_lo']:g}–{hi} | {b['steps']} | {b['strain_share']:.3f} | "
+                       f"{b['wall_share']:.3f} | {b['s_per_strain']:.0f} | {b['ms_per_step']:.0f} | "
+                       f"{b['mean_dgamma']:.1e} | {b['factorizations_per_step']:.1f} |")
+            where = ""
+    out += ["", f"Read {d['date']}.", ""]
+    return out
+
+
 def _measured_at(d) -> list:
     """The closing line of a section whose JSON has ``measured`` and ``loadavg``."""
     return ["", f"Measured {d['measured']}, load average {', '.join(f'{x:.1f}' for x in d['loadavg'])}.", ""]
@@ -1007,7 +1029,8 @@ def main():
                      ("tradeoff", tradeoff_section), ("spectrum", spectrum_section),
                      ("packing", packing_section), ("correlation", correlation_section),
                      ("suspension", suspension_section),
-                     ("suspension_dmax", suspension_dmax_section), ("lcp", lcp_section),
+                     ("suspension_dmax", suspension_dmax_section),
+                     ("suspension_by_sigma", suspension_by_sigma_section), ("lcp", lcp_section),
                      ("lcp_strategies", lcp_strategies_section),
                      ("lcp_factors", lcp_factors_section),
                      ("lcp_budget", lcp_budget_section),
