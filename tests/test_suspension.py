@@ -10,6 +10,7 @@ from parflow import geometry
 from parflow.geometry import rigidity_csr
 from parflow.post import suspension as su
 from parflow.dynamics import hard_discs as hd
+from parflow.dynamics import jamming
 from parflow.dynamics import lcp as co
 from parflow.models import suspension as msu
 from parflow.observables.contacts import coordination
@@ -491,6 +492,51 @@ def test_jam_proved_beyond_a_small_strain_budget():
     rec = e.value.certificate
     assert rec["certified"] and rec["tau_b"] < 0
     assert rec["dg"] > min(rec["dg_tried"]) and 0 < rec["strain_budget"] <= hd.JAM_BUDGET
+
+
+def test_jam_to_working_precision():
+    """A recorded N = 1024, phi = 0.84 state compressed in flow (tests/reference/
+    near_null_jam_state.npz, sigma = 4e9): every step from 1e-12 up leaves w = -0.13 on ~1 950
+    active contacts, and the LP finds no compressed self-stress (S^T tau = 0 to its tolerance):
+    the active N_AA has one all-positive near-null vector (eigenvalue ~3e-14 ||N_AA||) that
+    the flow compresses, whose gaps close within 3e-14 strain.  Shear-jammed to working
+    precision (kind "near-null" in the record), not a solver failure."""
+    sim = _recorded("near_null_jam_state.npz")
+    st = sim.state
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, sim.skin)
+    S = rigidity_csr(c.n, c.i, c.j, st.n)
+    lp = jamming.compressed_self_stress(S, c.b, sim.gaps(c), 1e-12, 1e12)
+    assert not lp.certified
+    with pytest.raises(hd.ShearJammed, match="working precision") as e:
+        sim.step(1)
+    rec = e.value.certificate
+    assert rec["kind"] == "near-null" and rec["certified"] and rec["tau_b"] < 0
+    assert rec["rayleigh"] <= jamming.NEAR_NULL and rec["support"] > 1900
+    assert 0 <= rec["strain_budget"] <= hd.JAM_BUDGET
+    assert st.gamma == float(np.load(os.path.join(os.path.dirname(__file__), "reference",
+                                                  "near_null_jam_state.npz"))["gamma"])
+
+
+def test_near_self_stress_needs_a_load():
+    """The near-null certificate on a touching triangular crystal (every contact closed, the
+    contact network over-constrained): sheared, its self-stresses are compressed and one is
+    found (tau >= 0, S^T tau = 0 to round-off); with no flow (q = 0) nothing is, though the
+    self-stresses are the same."""
+    from parflow.state import State
+    nx, ny = 6, 6
+    X = np.array([[i + 0.5 * (j % 2), j * np.sqrt(3) / 2] for j in range(ny) for i in range(nx)])
+    h0 = np.diag([nx, ny * np.sqrt(3) / 2])
+    st = State(X @ np.linalg.inv(h0).T, h0, np.array([[0.0, 1.0], [0.0, 0.0]]), 0.0, None,
+               np.full(nx * ny, 0.5))
+    c = geometry.find_candidates(st.s, st.radii, st.h, st.E, 0.1)
+    S = rigidity_csr(c.n, c.i, c.j, st.n)
+    gap = np.zeros(len(c))
+    active = np.ones(len(c), bool)
+    cert = jamming.near_self_stress(S, active, c.b, gap, 1e-6, 1e12)
+    assert cert.certified and cert.kind == "near-null" and cert.tau_b < 0 and cert.tau.min() >= 0
+    assert cert.rayleigh <= 1e-20 and cert.strain_budget == 0.0
+    none = jamming.near_self_stress(S, active, 0.0 * c.b, gap, 1e-6, 1e12)
+    assert not none.certified
 
 
 def test_closed_gaps_at_round_off_are_closed():

@@ -45,7 +45,7 @@ from ..errors import InputError
 from ..geometry import Candidates, cell_at, find_candidates, rigidity_csr, velocity_gradient
 from ..observables import stress
 from ..state import State
-from .jamming import compressed_self_stress
+from .jamming import compressed_self_stress, near_self_stress
 from .lcp import EPS, FACTORS, FLOOR_FACTOR, ContactSolveError, LCPFailure, LCPInfo, solve_lcp
 
 DEFAULT_SKIN = 0.3
@@ -192,6 +192,7 @@ class Suspension:
         self.upward_searches = 0       # steps that searched above their first size
         self.last_resorts = 0          # steps taken again with the last-resort LCP budget
         self._last_resort = False
+        self._tried_active = {}         # the step being taken: step size -> its LCP's active set
         self.omega = state.volume
         # compression while shearing: the discs swell, R_i = R0_i sqrt(phi / phi0), so that
         # phi grows by compress_rate per unit strain applied until it reaches compress_to
@@ -356,10 +357,12 @@ class Suspension:
         sig_max = 2.0 * float(st.radii.max())
         tried, why, upward, cert = [], "", None, None
         gave_up = False                 # an LCP of this step gave up (LCPFailure)
+        self._tried_active = {}         # step size -> active set of its LCP's solution
         while True:
             try:
                 S, q, f, V, info, warm = self.forces(c, dg, direction,
                                                      first=len(tried) < 2 and upward is None)
+                self._tried_active[dg] = f > 0
                 # an infeasible LCP (a self-stress tau >= 0 with tau . q < 0: a cluster the
                 # flow compresses) leaves w < 0 on the regularised active set: overlap
                 # dg |w| would grow this step.  Smaller steps give the reopened gaps more
@@ -460,11 +463,22 @@ class Suspension:
         big = cert if cert.dg == max(tried) else self._certify(c, direction, tried, max(tried))
         if big.certified and big.tau_b < 0 and big.strain_budget <= JAM_BUDGET:
             self._jammed(big, c, tried)
+        # a self-stress that holds to working precision only (the LP needs S^T tau = 0 to its
+        # tolerance): among the near-null eigenvectors of the active N_AA of the largest step
+        # whose LCP returned (dynamics.jamming.near_self_stress)
+        solved = [d for d in tried if d in self._tried_active]
+        if solved:
+            dg = max(solved)
+            near = self._certify(c, direction, tried, dg, active=self._tried_active[dg])
+            if near.certified and near.tau_b < 0 and near.strain_budget <= JAM_BUDGET:
+                self._jammed(near, c, tried)
         self._failed(cert, tried, why, gave_up)
 
-    def _certify(self, c: Candidates, direction: int, tried: list, dg: float | None = None):
+    def _certify(self, c: Candidates, direction: int, tried: list, dg: float | None = None,
+                 active: np.ndarray | None = None):
         """The LP certificate (``dynamics.jamming``) at step ``dg`` (default: the smallest
-        step tried), and its record for the run file."""
+        step tried), and its record for the run file; with ``active`` (the active set of
+        that step's LCP) the near-null one of that set's N_AA instead."""
         st = self.state
         dg = tried[-1] if dg is None else dg
         S = rigidity_csr(c.n, c.i, c.j, st.n)
@@ -473,7 +487,10 @@ class Suspension:
         # the affine closing rate b (q = b + h/dg as the LCP's)
         gap = self.gaps(c)
         b = direction * c.b - (gap - self.end_gaps(c, dg)) / dg
-        cert = compressed_self_stress(S, b, gap, dg, v_adm)
+        if active is None:
+            cert = compressed_self_stress(S, b, gap, dg, v_adm)
+        else:
+            cert = near_self_stress(S, active, b, gap, dg, v_adm)
         cert.rec = dict(cert.record(), gamma=float(st.gamma), direction=int(direction),
                         dg_min=float(self.dg_min), n_candidates=len(c))
         if self.compressing:
@@ -515,9 +532,12 @@ class Suspension:
             kind = "shear-jammed" if rec["tau_b_shear"] < 0 else "jammed by the compression"
             what += (f" while the discs swell (phi = {rec['phi']:.6g}; the shear's share of "
                      f"tau.b: {rec['tau_b_shear']:.4g})")
+        proof = ("by a compressed self-stress" if cert.kind == "lp" else
+                 f"to working precision by a compressed near-self-stress (|S^T tau|^2 / |tau|^2 "
+                 f"= {cert.rayleigh:.2g} ||N_AA||)")
         raise ShearJammed(
             f"suspension: {kind} at gamma = {self.state.gamma:.10g}: {what}, proved "
-            f"by a compressed self-stress on "
+            f"{proof} on "
             f"{cert.support} contacts (tau.b = {cert.tau_b:.4g}, tau.q = {cert.tau_q:.4g} at "
             f"dg = {cert.dg:.3g}, strain budget {cert.strain_budget:.3g}); stress is infinite "
             f"at this N", certificate=rec, tau=cert.tau[P], pairs=(c.i[P], c.j[P]))
