@@ -302,6 +302,13 @@ def analyses_enabled(obs_cfg: dict) -> bool:
     return bool(c["analysis_every"] or c["analysis_per_decade"] or c["analysis_strain"])
 
 
+# the window of the ETA of a leg that stops on strain or steps alone (no stress target): its
+# progress is linear in strain and its rate only fluctuates -- a flowing suspension at
+# phi = 0.840 makes 0.4-2.4 strain per hour in 10-minute windows as sigma swings through its
+# excursions, and a 30 s window put "leg ETA" anywhere between 1 and 38 hours
+STRAIN_ETA_WINDOW = 600.0
+
+
 class Leg:
     """Stop rules of one leg of the protocol, and its progress for the ETA."""
 
@@ -321,6 +328,13 @@ class Leg:
         if "max_steps" in sp and leg_steps >= sp["max_steps"]:
             return f"leg step budget {sp['max_steps']} used"
         return None
+
+    def eta(self) -> "EtaEstimate":
+        """The ETA estimator for this leg: over the last 30 s toward a stress target (progress
+        slows down as jamming nears), over STRAIN_ETA_WINDOW for a leg that stops on strain
+        or steps alone."""
+        stress = any(f"{q}_{s}" in self.spec for q in ("sigma", "V2") for s in ("above", "below"))
+        return EtaEstimate() if stress else EtaEstimate(window=STRAIN_ETA_WINDOW)
 
     def fraction(self, obs: dict, start: dict, leg_strain: float, leg_steps: int) -> float:
         sp, f = self.spec, 0.0

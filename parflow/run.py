@@ -28,7 +28,7 @@ from .dynamics.engines import make_engine
 from .dynamics.heun import Jammed
 from .io import RunWriter, WriteError, collective_write
 from .models import get_model
-from .protocol import (Clock, Elapsed, EtaEstimate, Every, Leg, WallEvery, analyses_enabled,
+from .protocol import (Clock, Elapsed, Every, Leg, WallEvery, analyses_enabled,
                        analysis_trigger, hms)
 from .provenance import git_commit, versions
 from .algebra.solvers import SolveError, all_options, unused_options
@@ -155,7 +155,7 @@ class Run:
         row_step = [ck["step"] if ck else None]     # the step of the last row written
         checkpoint_due = Elapsed(steps=out["checkpoint_every"], seconds=60 * out["checkpoint_minutes"],
                                  start_step=clock.step)
-        eta = EtaEstimate()
+        eta = legs[min(clock.leg, len(legs) - 1)].eta()
         wom_last = float("nan")
         leg_t0, leg_step0 = time.monotonic(), clock.step
 
@@ -251,7 +251,7 @@ class Run:
                         clock.next_leg()
                         if begin_leg():
                             obs = eng.observe()
-                        leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, EtaEstimate()
+                        leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, legs[min(clock.leg, len(legs) - 1)].eta()
                         continue
                     cap = leg.spec["strain"] - clock.leg_strain if "strain" in leg.spec else None
                     dgamma = eng.step(leg.direction, cap)

@@ -246,6 +246,28 @@ def test_every_scene_in_runs_is_valid():
         assert scene["protocol"]["leg"], p
 
 
+def test_eta_window_follows_the_leg():
+    """A leg toward a stress target takes its ETA from the last 30 s (progress slows near
+    jamming); a leg that stops on strain alone from STRAIN_ETA_WINDOW, so that sigma's swings
+    in a flowing suspension do not throw it about."""
+    from parflow.protocol import STRAIN_ETA_WINDOW, Leg
+    assert Leg(dict(direction="forward", sigma_above=1e6), 0, 1).eta().window == 30.0
+    assert Leg(dict(direction="reverse", V2_below=10.0, strain=0.1), 0, 1).eta().window == 30.0
+    strain = Leg(dict(direction="forward", strain=3.0), 0, 1).eta()
+    assert strain.window == STRAIN_ETA_WINDOW >= 300.0
+    # 1 s a step, the strain rate swinging 4x every 100 s: the long window keeps the ETA
+    # within 30 % of the mean rate's, a 30 s window does not
+    short = Leg(dict(direction="forward", sigma_above=1e6), 0, 1).eta()
+    frac, late, late_short = 0.0, [], []
+    for k in range(1, 1500):
+        frac += (4e-4 if (k // 100) % 2 else 1e-4) / 2.0
+        e, s = strain.update(float(k), frac, k), short.update(float(k), frac, k)
+        if k > 700:
+            late.append(e * 1.25e-4 / (1 - frac))
+            late_short.append(s * 1.25e-4 / (1 - frac))
+    assert max(abs(np.array(late) - 1)) < 0.3 and max(abs(np.array(late_short) - 1)) > 0.5
+
+
 def test_eta_window_spans_enough_steps():
     """The leg ETA uses at least 30 s and 30 steps of history: slow steps whose progress
     goes up and down do not make it jump."""
