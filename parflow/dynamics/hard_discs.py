@@ -459,7 +459,10 @@ class Suspension:
         -- is at most JAM_BUDGET, the suspension is jammed within that strain (the steps
         below the budget are feasible in exact arithmetic, but near such a cluster the
         active-set solve cannot resolve them: measured at N = 1024, phi = 0.84, a budget of
-        1.8e-10 with every step from 1e-12 to 1e-9 failing); else a solver failure."""
+        1.8e-10 with every step from 1e-12 to 1e-9 failing).  Failing that, a compressed
+        self-stress to working precision among the near-null eigenvectors of the active
+        contacts of the largest step solved (``jamming.near_self_stress``), with tau.b < 0 and
+        the same budget rule; else a solver failure."""
         big = cert if cert.dg == max(tried) else self._certify(c, direction, tried, max(tried))
         if big.certified and big.tau_b < 0 and big.strain_budget <= JAM_BUDGET:
             self._jammed(big, c, tried)
@@ -518,8 +521,9 @@ class Suspension:
         return out
 
     def _jammed(self, cert, c: Candidates, tried: list):
-        """Raise :class:`ShearJammed` with the proof: tau >= 0, S^T tau = 0, tau.q < 0 at the
-        smallest step, and tau.b < 0 (then tau.q < 0 at every larger step as well)."""
+        """Raise :class:`ShearJammed` with the proof: tau >= 0, S^T tau = 0 (kind "lp"; to
+        working precision, kind "near-null"), tau.q < 0 at the step it was found at, and
+        tau.b < 0 (then tau.q < 0 at every larger step as well)."""
         rec = dict(cert.rec, dg_tried=np.array(tried, float))
         P = np.flatnonzero(cert.tau > 0)
         if cert.dg <= min(tried):
