@@ -46,8 +46,9 @@ from scipy.sparse.linalg import ArpackError, ArpackNoConvergence, eigsh, lsqr
 # tau components below this (relative to max tau = 1) are dropped from the support
 SUPPORT_CUT = 1e-9
 # near_self_stress: eigenvectors of N_AA with eigenvalue <= NEAR_NULL ||N_AA||_inf span the
-# near self-stresses (cond(N_AA) >= 1e12: singular to the accuracy of its solves near jamming;
-# the measured case's compressed one sits at 4e-14, its two exact ones at 2e-17); NEAR_K of the
+# near self-stresses -- the shift of the active-set solver's singular sets (lcp.ActiveSolver,
+# eps = 1e-12): below it the shifted solve and its refinement cannot resolve a mode (the
+# measured case's compressed one sits at 4e-14, its two exact ones at 2e-17); NEAR_K of the
 # lowest are computed (shift-invert about -NEAR_SHIFT ||N_AA||_inf), twice as many while all
 # of them are near-null, up to NEAR_K_MAX (a larger null space: an over-constrained crystal)
 NEAR_NULL = 1e-12
