@@ -291,6 +291,32 @@ def test_jam_rate_at_constant_phi(tmp_path):
     assert row["uncertified"] == 1 and row["n_samples"] == 2
 
 
+def test_jam_rate_figure():
+    """Jams per unit strain against N at one phi: a size with jams is a point with its
+    Poisson interval, a size with none its upper bound (a triangle pointing down); a phi
+    with one size only has no figure."""
+    from parflow.plot.suspension_jams import _figures, jam_rate_figure
+
+    def row(N, phi, n, strain):
+        lo, hi = sj.poisson_interval(n)
+        return dict(N=N, phi=phi, n_samples=3, n_jams=n, strain=strain, rate=n / strain,
+                    rate_ci=[lo / strain, hi / strain])
+    res = dict(table=[], records=[], fits={}, fits_free={},
+               rates=[row(1024, 0.84, 7, 0.54), row(2048, 0.84, 3, 1.5), row(4096, 0.84, 0, 5.0),
+                      row(4096, 0.835, 1, 2.0)])
+    ax = jam_rate_figure(res).axes[0]
+    points = [ln for ln in ax.lines if ln.get_marker() == "o"]
+    down = [ln for ln in ax.lines if ln.get_marker() == "v"]
+    assert len(points) == 1 and list(points[0].get_xdata()) == [1024, 2048]
+    assert np.allclose(points[0].get_ydata(), [7 / 0.54, 3 / 1.5])
+    assert len(down) == 1 and list(down[0].get_xdata()) == [4096]
+    assert down[0].get_ydata()[0] == pytest.approx(sj.poisson_interval(0)[1] / 5.0)
+    assert len(ax.texts) == 3 and ax.texts[2].get_text() == "0 in 5"
+    assert "suspension_jams_per_strain" in [n for n, _ in _figures(res)]
+    res["rates"] = res["rates"][-1:]
+    assert "suspension_jams_per_strain" not in [n for n, _ in _figures(res)]
+
+
 @pytest.mark.serial_only
 def test_command_line_on_run_files(tmp_path):
     ramp = [0.820, 0.830, 0.840, 0.840]

@@ -11,6 +11,10 @@
   jam; not in the means or the fits).
 * ``suspension_jams_rate`` (with two rates or more): the same jams against the compression
   rate, one colour per N.
+* ``suspension_jams_per_strain`` (where one packing fraction has runs at two sizes or more):
+  the certified jams per unit strain at constant phi against N, with the exact Poisson 95 %
+  interval; a size with no jam yet is drawn as its upper bound (a triangle pointing down);
+  each point labelled with its count and strain.
 
 ``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
 ``python -m parflow.post.suspension_jams``).
@@ -117,10 +121,56 @@ def phi_sj_rate_figure(res: dict) -> Figure:
     return fig
 
 
+def _rate_phis(res: dict) -> list:
+    """The packing fractions whose constant-phi rates cover two sizes or more."""
+    rows = res.get("rates", [])
+    return sorted(p for p in {r["phi"] for r in rows}
+                  if len({r["N"] for r in rows if r["phi"] == p}) > 1)
+
+
+def jam_rate_figure(res: dict) -> Figure:
+    """Certified jams per unit strain at constant phi against N (``res["rates"]``), one
+    colour per phi with runs at two sizes or more: the rate with its exact Poisson interval,
+    or, with no jam yet, the interval's upper end (a triangle pointing down)."""
+    fig = new_figure(6.4, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    for k, phi in enumerate(_rate_phis(res)):
+        rows = sorted((r for r in res["rates"] if r["phi"] == phi), key=lambda r: r["N"])
+        color = f"C{k}"
+        hit = [r for r in rows if r["n_jams"] > 0]
+        if hit:
+            x = np.array([r["N"] for r in hit], float)
+            y = np.array([r["rate"] for r in hit], float)
+            lo = y - np.array([r["rate_ci"][0] for r in hit], float)
+            hi = np.array([r["rate_ci"][1] for r in hit], float) - y
+            ax.errorbar(x, y, yerr=[lo, hi], fmt="o-", color=color, capsize=3, ms=5,
+                        label=f"φ = {phi:.4f}: jams per unit strain (Poisson 95 %)")
+        zero = [r for r in rows if r["n_jams"] == 0]
+        if zero:
+            ax.plot([r["N"] for r in zero], [r["rate_ci"][1] for r in zero], "v", ms=7,
+                    color="none", markeredgecolor=color,
+                    label=f"φ = {phi:.4f}: no jam yet (upper end of the 95 % interval)")
+        for r in rows:
+            y = r["rate"] if r["n_jams"] else r["rate_ci"][1]
+            ax.annotate(f"{r['n_jams']} in {r['strain']:.3g}", (r["N"], y), fontsize=7,
+                        textcoords="offset points", xytext=(5, 4))
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("N")
+    ax.set_ylabel("certified jams per unit strain")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper right")
+    ax.set_title("Shear jams of flowing suspensions at constant φ, against N\n"
+                 "(labels: jams in strain at that φ)", fontsize=8.5)
+    return fig
+
+
 def _figures(res: dict) -> list:
     out = [("suspension_jams_phiSJ", phi_sj_figure(res))]
     if len({t["compress_rate"] for t in res["table"] if t["n_shear_jams"]}) > 1:
         out.append(("suspension_jams_rate", phi_sj_rate_figure(res)))
+    if _rate_phis(res):
+        out.append(("suspension_jams_per_strain", jam_rate_figure(res)))
     return out
 
 
