@@ -156,10 +156,12 @@ def jam_rate_figure(res: dict) -> Figure:
                         textcoords="offset points", xytext=(5, 4))
     ax.set_xscale("log")
     ax.set_yscale("log")
+    sizes = [r["N"] for r in res["rates"] if r["phi"] in _rate_phis(res)]
+    ax.set_xlim(min(sizes) / 1.3, max(sizes) * 1.8)        # room for the labels
     ax.set_xlabel("N")
     ax.set_ylabel("certified jams per unit strain")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=7, loc="lower left")
     ax.set_title("Shear jams of flowing suspensions at constant φ, against N\n"
                  "(labels: jams in strain at that φ)", fontsize=8.5)
     return fig
