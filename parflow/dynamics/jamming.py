@@ -23,12 +23,13 @@ passes sqrt(N) min(2 dmax, skin/2)/dg: a faster particle would fail the step's d
 bounds anyway).
 
 A self-stress that holds to working precision only -- the cluster rigid up to a Rayleigh
-quotient |S^T tau|^2/|tau|^2 of ~1e-13 ||N_AA||, so that the LP (S^T tau = 0 to its feasibility
+quotient |S^T tau|^2/|tau|^2 of ~3e-14 ||N_AA||, so that the LP (S^T tau = 0 to its feasibility
 tolerance) finds nothing and the velocity bound is far below the admissible one -- is found by
 :func:`near_self_stress` among the lowest eigenvectors of the active contacts' N_AA: a
 nonnegative combination tau of those with eigenvalue <= NEAR_NULL ||N_AA||_inf that the flow
 compresses (kind "near-null").  Near such a cluster the LCP is feasible in exact arithmetic
-only with forces ~ (tau . q) / lambda (1e14 at lambda = 2e-13), beyond what a solve in double
+only with forces ~ (u . q) / lambda along the unit near-null vector u (4e12 at lambda =
+2e-13), beyond what a solve in double
 precision resolves: measured at N = 1024, phi = 0.84 (sigma = 4e9), every step from 1e-12 up
 failed with w = -0.13 on 1 950 of the 1 960 active contacts.
 
