@@ -29,8 +29,7 @@ tolerance) finds nothing and the velocity bound is far below the admissible one 
 nonnegative combination tau of those with eigenvalue <= NEAR_NULL ||N_AA||_inf that the flow
 compresses (kind "near-null").  Near such a cluster the LCP is feasible in exact arithmetic
 only with forces ~ (u . q) / lambda along the unit near-null vector u (4e12 at lambda =
-2e-13), beyond what a solve in double
-precision resolves: measured at N = 1024, phi = 0.84 (sigma = 4e9), every step from 1e-12 up
+2e-13), beyond what a solve in double precision resolves: measured at N = 1024, phi = 0.84 (sigma = 4e9), every step from 1e-12 up
 failed with w = -0.13 on 1 950 of the 1 960 active contacts.
 
 Replicated: every rank solves the same LP (HiGHS is deterministic), no communication.
