@@ -192,7 +192,6 @@ class Suspension:
         self.upward_searches = 0       # steps that searched above their first size
         self.last_resorts = 0          # steps taken again with the last-resort LCP budget
         self._last_resort = False
-        self._tried_active = {}         # the step being taken: step size -> its LCP's active set
         self.omega = state.volume
         # compression while shearing: the discs swell, R_i = R0_i sqrt(phi / phi0), so that
         # phi grows by compress_rate per unit strain applied until it reaches compress_to
@@ -357,12 +356,12 @@ class Suspension:
         sig_max = 2.0 * float(st.radii.max())
         tried, why, upward, cert = [], "", None, None
         gave_up = False                 # an LCP of this step gave up (LCPFailure)
-        self._tried_active = {}         # step size -> active set of its LCP's solution
+        active_of = {}                  # step size tried -> the active set of its LCP
         while True:
             try:
                 S, q, f, V, info, warm = self.forces(c, dg, direction,
                                                      first=len(tried) < 2 and upward is None)
-                self._tried_active[dg] = f > 0
+                active_of[dg] = f > 0
                 # an infeasible LCP (a self-stress tau >= 0 with tau . q < 0: a cluster the
                 # flow compresses) leaves w < 0 on the regularised active set: overlap
                 # dg |w| would grow this step.  Smaller steps give the reopened gaps more
@@ -397,7 +396,7 @@ class Suspension:
                 if feasible:                # (the displacement bounds: larger won't do)
                     upward = []
                 if not upward:
-                    self._jam_or_fail(cert, c, direction, tried, why, gave_up)
+                    self._jam_or_fail(cert, c, direction, tried, why, gave_up, active_of)
                 dg = upward.pop(0)
                 continue
             if not feasible and len(tried) == 1 and RETRY_AT_LAST and 0 < self.last_dg < dg:
@@ -422,7 +421,7 @@ class Suspension:
                 upward = self._larger_steps(tried, cert, cap)
                 self.upward_searches += 1
                 if not upward:
-                    self._jam_or_fail(cert, c, direction, tried, why, gave_up)
+                    self._jam_or_fail(cert, c, direction, tried, why, gave_up, active_of)
                 dg = upward.pop(0)
         t2 = time.perf_counter()
         h_new = cell_at(st.h0, st.E, st.gamma + direction * dg)
@@ -452,7 +451,7 @@ class Suspension:
         return stats
 
     def _jam_or_fail(self, cert, c: Candidates, direction: int, tried: list, why: str,
-                     gave_up: bool):
+                     gave_up: bool, active_of: dict):
         """No step was accepted and the smallest one is not proved infeasible.  If the LP at
         the largest step tried proves a compressed self-stress the flow compresses (tau.b <
         0) whose strain budget -- the strain left before the stressed cluster's gaps close
@@ -463,18 +462,18 @@ class Suspension:
         self-stress to working precision among the near-null eigenvectors of the active
         contacts of the largest step solved (``jamming.near_self_stress``), with tau.b < 0 and
         the same budget rule; else a solver failure."""
-        big = cert if cert.dg == max(tried) else self._certify(c, direction, tried, max(tried))
-        if big.certified and big.tau_b < 0 and big.strain_budget <= JAM_BUDGET:
-            self._jammed(big, c, tried)
-        # a self-stress that holds to working precision only (the LP needs S^T tau = 0 to its
-        # tolerance): among the near-null eigenvectors of the active N_AA of the largest step
-        # whose LCP returned (dynamics.jamming.near_self_stress)
-        solved = [d for d in tried if d in self._tried_active]
-        if solved:
-            dg = max(solved)
-            near = self._certify(c, direction, tried, dg, active=self._tried_active[dg])
-            if near.certified and near.tau_b < 0 and near.strain_budget <= JAM_BUDGET:
-                self._jammed(near, c, tried)
+        def proofs():
+            yield cert if cert.dg == max(tried) else self._certify(c, direction, tried, max(tried))
+            # a self-stress that holds to working precision only (the LP needs S^T tau = 0 to
+            # its tolerance): among the near-null eigenvectors of the active N_AA of the
+            # largest step whose LCP returned (dynamics.jamming.near_self_stress)
+            if active_of:
+                dg = max(active_of)
+                yield self._certify(c, direction, tried, dg, active=active_of[dg])
+
+        for proof in proofs():
+            if proof.certified and proof.tau_b < 0 and proof.strain_budget <= JAM_BUDGET:
+                self._jammed(proof, c, tried)
         self._failed(cert, tried, why, gave_up)
 
     def _certify(self, c: Candidates, direction: int, tried: list, dg: float | None = None,

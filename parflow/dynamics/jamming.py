@@ -29,8 +29,9 @@ tolerance) finds nothing and the velocity bound is far below the admissible one 
 nonnegative combination tau of those with eigenvalue <= NEAR_NULL ||N_AA||_inf that the flow
 compresses (kind "near-null").  Near such a cluster the LCP is feasible in exact arithmetic
 only with forces ~ (u . q) / lambda along the unit near-null vector u (4e12 at lambda =
-2e-13), beyond what a solve in double precision resolves: measured at N = 1024, phi = 0.84 (sigma = 4e9), every step from 1e-12 up
-failed with w = -0.13 on 1 950 of the 1 960 active contacts.
+2e-13), beyond what a solve in double precision resolves: measured at N = 1024, phi = 0.84
+(sigma = 4e9), every step from 1e-12 up failed with w = -0.13 on 1 950 of the 1 960 active
+contacts.
 
 Replicated: every rank solves the same LP (HiGHS is deterministic), no communication.
 """
@@ -132,14 +133,23 @@ def compressed_self_stress(S: sp.csr_matrix, b: np.ndarray, gap: np.ndarray, dg:
     tau = _polish(S, np.clip(res.x, 0.0, 1.0))
     if not tau.max() > 0:
         return empty
-    tau /= tau.max()
-    tq = float(tau @ q)
+    cert = _measured(S, tau, b, gap, dg, v_admissible, str(res.message))
+    cert.certified = bool(cert.tau_q < 0 and cert.v_bound >= v_admissible)
+    return cert
+
+
+def _measured(S: sp.csr_matrix, tau: np.ndarray, b: np.ndarray, gap: np.ndarray, dg: float,
+              v_admissible: float, status: str, **kind) -> Certificate:
+    """The Certificate of a candidate ``tau`` >= 0 (scaled here to max 1): its support,
+    tau . b, tau . gap, tau . q, |S^T tau|_2 and the velocity bound; ``certified`` is left
+    False for the caller's criterion."""
+    tau = tau / tau.max()
+    tq = float(tau @ (b + gap / dg))
     resid = float(np.linalg.norm(S.T @ tau))
     v_bound = np.inf if resid == 0 else (-tq / resid if tq < 0 else 0.0)
-    return Certificate(bool(tq < 0 and v_bound >= v_admissible), tau,
-                       int(np.count_nonzero(tau > SUPPORT_CUT)), float(tau @ b),
+    return Certificate(False, tau, int(np.count_nonzero(tau > SUPPORT_CUT)), float(tau @ b),
                        float(tau @ gap), tq, resid, float(v_bound), float(v_admissible), dg,
-                       str(res.message))
+                       status, **kind)
 
 
 def near_self_stress(S: sp.csr_matrix, active: np.ndarray, b: np.ndarray, gap: np.ndarray,
@@ -149,8 +159,7 @@ def near_self_stress(S: sp.csr_matrix, active: np.ndarray, b: np.ndarray, gap: n
     ||N_AA||_inf, and of their span the tau = U c >= 0 (max 1) with the least tau . q (a
     small LP in c).  ``certified``: tau . q < -NEAR_LOADED |tau| |q_A| and its Rayleigh quotient
     |S^T tau|^2 / |tau|^2 <= NEAR_NULL ||N_AA||_inf (kind "near-null"); tau, b, gap over all
-    candidates as in
-    :func:`compressed_self_stress` (v_bound is reported, not required)."""
+    candidates as in :func:`compressed_self_stress` (v_bound is reported, not required)."""
     nc = S.shape[0]
     q = b + gap / dg
     none = Certificate(False, np.zeros(nc), 0, 0.0, 0.0, 0.0, 0.0, 0.0, v_admissible, dg, "",
@@ -192,14 +201,8 @@ def near_self_stress(S: sp.csr_matrix, active: np.ndarray, b: np.ndarray, gap: n
     if not tau.max() > 0:
         none.lp_status = status
         return none
-    tau /= tau.max()
-    tq = float(tau @ q)
-    r = S.T @ tau
-    resid = float(np.linalg.norm(r))
-    rayleigh = resid ** 2 / float(tau @ tau) / norm
-    v_bound = np.inf if resid == 0 else (-tq / resid if tq < 0 else 0.0)
-    loaded = tq < -NEAR_LOADED * float(np.linalg.norm(tau)) * float(np.linalg.norm(qa))
-    return Certificate(bool(loaded and rayleigh <= NEAR_NULL), tau,
-                       int(np.count_nonzero(tau > SUPPORT_CUT)), float(tau @ b),
-                       float(tau @ gap), tq, resid, float(v_bound), float(v_admissible), dg,
-                       status, kind="near-null", rayleigh=rayleigh)
+    cert = _measured(S, tau, b, gap, dg, v_admissible, status, kind="near-null")
+    cert.rayleigh = cert.residual ** 2 / float(cert.tau @ cert.tau) / norm
+    loaded = cert.tau_q < -NEAR_LOADED * float(np.linalg.norm(cert.tau)) * float(np.linalg.norm(qa))
+    cert.certified = bool(loaded and cert.rayleigh <= NEAR_NULL)
+    return cert
