@@ -155,13 +155,17 @@ class Run:
         row_step = [ck["step"] if ck else None]     # the step of the last row written
         checkpoint_due = Elapsed(steps=out["checkpoint_every"], seconds=60 * out["checkpoint_minutes"],
                                  start_step=clock.step)
-        eta = legs[min(clock.leg, len(legs) - 1)].eta()
+        def current_leg():
+            """The leg being run (the last one once all are done)."""
+            return legs[min(clock.leg, len(legs) - 1)]
+
+        eta = current_leg().eta()
         wom_last = float("nan")
         leg_t0, leg_step0 = time.monotonic(), clock.step
 
         def record(obs, wom):
             row = dict(step=clock.step, gamma=eng.gamma, strain=clock.strain, leg=clock.leg,
-                       direction=legs[min(clock.leg, len(legs) - 1)].direction,
+                       direction=current_leg().direction,
                        omega_min=wom, wall=time.monotonic() - t_start)
             row.update(eng.row())
             row.update(obs)
@@ -251,7 +255,7 @@ class Run:
                         clock.next_leg()
                         if begin_leg():
                             obs = eng.observe()
-                        leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, legs[min(clock.leg, len(legs) - 1)].eta()
+                        leg_obs0, leg_t0, leg_step0, eta = dict(obs), time.monotonic(), clock.step, current_leg().eta()
                         continue
                     cap = leg.spec["strain"] - clock.leg_strain if "strain" in leg.spec else None
                     dgamma = eng.step(leg.direction, cap)
