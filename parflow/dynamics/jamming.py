@@ -119,23 +119,27 @@ def compressed_self_stress(S: sp.csr_matrix, b: np.ndarray, gap: np.ndarray, dg:
     0 <= tau <= 1, polished and judged as the module docstring says."""
     nc = S.shape[0]
     q = b + gap / dg
-    empty = Certificate(False, np.zeros(nc), 0, 0.0, 0.0, 0.0, 0.0, 0.0, v_admissible, dg, "")
     if nc == 0:
-        empty.lp_status = "no candidates"
-        return empty
+        return _unproved(nc, dg, v_admissible, "no candidates")
     qs = float(np.abs(q).max()) or 1.0               # scaled objective: HiGHS tolerances
     res = linprog(q / qs, A_eq=S.T.tocsr(), b_eq=np.zeros(S.shape[1]), bounds=(0.0, 1.0),
                   method="highs", options=dict(primal_feasibility_tolerance=1e-10,
                                                dual_feasibility_tolerance=1e-10))
-    empty.lp_status = str(res.message)
     if res.status != 0 or res.x is None or not res.fun < 0:
-        return empty
+        return _unproved(nc, dg, v_admissible, str(res.message))
     tau = _polish(S, np.clip(res.x, 0.0, 1.0))
     if not tau.max() > 0:
-        return empty
+        return _unproved(nc, dg, v_admissible, str(res.message))
     cert = _measured(S, tau, b, gap, dg, v_admissible, str(res.message))
     cert.certified = bool(cert.tau_q < 0 and cert.v_bound >= v_admissible)
     return cert
+
+
+def _unproved(nc: int, dg: float, v_admissible: float, status: str, **kind) -> Certificate:
+    """Nothing proved at step ``dg`` (``status`` says why): tau = 0 over the ``nc``
+    candidates."""
+    return Certificate(False, np.zeros(nc), 0, 0.0, 0.0, 0.0, 0.0, 0.0, v_admissible, dg, status,
+                       **kind)
 
 
 def _measured(S: sp.csr_matrix, tau: np.ndarray, b: np.ndarray, gap: np.ndarray, dg: float,
@@ -162,12 +166,12 @@ def near_self_stress(S: sp.csr_matrix, active: np.ndarray, b: np.ndarray, gap: n
     candidates as in :func:`compressed_self_stress` (v_bound is reported, not required)."""
     nc = S.shape[0]
     q = b + gap / dg
-    none = Certificate(False, np.zeros(nc), 0, 0.0, 0.0, 0.0, 0.0, 0.0, v_admissible, dg, "",
-                       kind="near-null", rayleigh=np.inf)
+    def none(status):
+        return _unproved(nc, dg, v_admissible, status, kind="near-null", rayleigh=np.inf)
+
     A = np.flatnonzero(active)
     if A.size < 2:
-        none.lp_status = "fewer than two active contacts"
-        return none
+        return none("fewer than two active contacts")
     SA = S[A]
     M = (SA @ SA.T).tocsc()
     norm = float(np.max(np.abs(M).sum(axis=1)))
@@ -178,29 +182,25 @@ def near_self_stress(S: sp.csr_matrix, active: np.ndarray, b: np.ndarray, gap: n
         try:
             lam, U = eigsh(M, k=k, sigma=-NEAR_SHIFT * norm, which="LM", v0=v0)
         except (ArpackError, ArpackNoConvergence, RuntimeError) as exc:
-            none.lp_status = f"eigenvectors of N_AA: {exc}"
-            return none
+            return none(f"eigenvectors of N_AA: {exc}")
         if np.any(lam > NEAR_NULL * norm) or k >= min(NEAR_K_MAX, A.size - 1):
             break
         k *= 2
     U = U[:, lam <= NEAR_NULL * norm]
     if U.shape[1] == 0:
-        none.lp_status = (f"no eigenvalue of N_AA below {NEAR_NULL:g} ||N_AA|| (lowest "
-                          f"{float(lam.min()) / norm:.2g})")
-        return none
+        return none(f"no eigenvalue of N_AA below {NEAR_NULL:g} ||N_AA|| (lowest "
+                    f"{float(lam.min()) / norm:.2g})")
     qa = q[A]
     res = linprog(U.T @ qa / (float(np.abs(qa).max()) or 1.0),
                   A_ub=np.vstack([-U, U]), b_ub=np.concatenate([np.zeros(A.size), np.ones(A.size)]),
                   bounds=(None, None), method="highs")
     status = f"{U.shape[1]} near-null eigenvector(s) of N_AA; {res.message}"
     if res.status != 0 or res.x is None or not res.fun < 0:
-        none.lp_status = status
-        return none
+        return none(status)
     tau = np.zeros(nc)
     tau[A] = np.maximum(U @ res.x, 0.0)
     if not tau.max() > 0:
-        none.lp_status = status
-        return none
+        return none(status)
     cert = _measured(S, tau, b, gap, dg, v_admissible, status, kind="near-null")
     cert.rayleigh = cert.residual ** 2 / float(cert.tau @ cert.tau) / norm
     loaded = cert.tau_q < -NEAR_LOADED * float(np.linalg.norm(cert.tau)) * float(np.linalg.norm(qa))
