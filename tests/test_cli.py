@@ -7,6 +7,7 @@ import sys
 import h5py
 import numpy as np
 import pytest
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only      # each test launches its own processes
 
@@ -28,7 +29,7 @@ def shear(*args, cwd=None, timeout=120, mpi=0):
     if mpi:
         cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=cwd, env=env)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=guard(timeout), cwd=cwd, env=env)
 
 
 def scene_file(tmp_path, text, name="s.toml"):
@@ -173,7 +174,7 @@ def _signal_mid_run(tmp_path, sig):
     finally:
         proc.send_signal(sig)
         try:
-            _, err = proc.communicate(timeout=60)
+            _, err = proc.communicate(timeout=guard(60))
         except subprocess.TimeoutExpired:
             proc.kill()                   # no run left behind by a failing test
             proc.communicate()

@@ -15,6 +15,7 @@ from parflow.ensemble import SEED_RULE, sample_seed, sample_text
 from parflow.errors import InputError
 from parflow.scene import load_scene
 from systems import SUSPENSION_ENSEMBLE_SCENE
+from hang_guard import guard
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from reference_runs import flatten  # noqa: E402  (VOLATILE entries left out)
@@ -101,7 +102,7 @@ def shear(*args, mpi=0, timeout=120, hook=None, cwd=None):
     cmd += [*map(str, args)]
     if mpi:
         cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=_env(), cwd=cwd)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=guard(timeout), env=_env(), cwd=cwd)
 
 
 def scene(tmp_path, text=SCENE):
@@ -526,7 +527,7 @@ def test_jamming_rate_of_samples_compressed_while_flowing():
 def test_plot_folder(serial, tmp_path):
     out = tmp_path / "figs"
     res = subprocess.run([sys.executable, "-m", "parflow.plot", str(serial), "--out", str(out)],
-                         capture_output=True, text=True, timeout=120, env=_env())
+                         capture_output=True, text=True, timeout=guard(120), env=_env())
     assert res.returncode == 0, res.stderr
     assert (out / "ensemble_V2_forward.png").stat().st_size > 10_000
 

@@ -22,6 +22,7 @@ import pytest
 from parflow import io
 from parflow.io import writer as io_writer
 from parflow.io import RunWriter, load_group, read_run
+from hang_guard import guard
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -199,7 +200,7 @@ def env():
 
 def run(*args, mpi=0, timeout=120):
     return subprocess.run(shear_cmd(*args, mpi=mpi), capture_output=True, text=True,
-                          timeout=timeout, env=env())
+                          timeout=guard(timeout), env=env())
 
 
 def scene(tmp_path, N=3000, ck=5, flush=1000, snap=0, name="s.toml"):
@@ -295,7 +296,7 @@ def test_disk_full_mid_run(tmp_path, small_disk, mpi):
         cmd = shear_cmd(*args, mpi=mpi)
         k = cmd.index("-m")
         cmd[k:k + 2] = ["-c", FAKE_FULL_DISK]
-        res = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=env())
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=guard(180), env=env())
     assert res.returncode == 1, res.stderr
     assert_one_line(res, "parflow.shear: write error:", "no space left on the device",
                     repr(str(out)), "the file keeps the run up to step")
@@ -342,7 +343,7 @@ def kill9(proc):
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-    proc.wait(timeout=30)
+    proc.wait(timeout=guard(30))
     deadline = time.time() + 30
     while session(proc.pid) and time.time() < deadline:     # the ranks are gone too
         time.sleep(0.05)
@@ -419,7 +420,7 @@ def test_reader_holding_the_file_keeps_its_view(tmp_path):
     assert int(reader.stdout.readline()) == 3000
     next(gen)                          # the twin is the reader's file: refused, dropped
     next(gen)                          # copies FILE
-    out, _ = reader.communicate("go\n", timeout=30)
+    out, _ = reader.communicate("go\n", timeout=guard(30))
     assert reader.returncode == 0 and out.strip() == "same"
     assert w.copies == 2
     assert w.close(status="complete") is None

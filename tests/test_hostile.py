@@ -9,6 +9,7 @@ import sys
 import h5py
 import pytest
 from test_cli import GOOD
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only      # each test launches its own processes
 
@@ -20,7 +21,7 @@ def cli(module, *args, mpi=0, timeout=120, cwd=None):
     if mpi:
         cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
     env = dict(os.environ, PYTHONPATH=ROOT)
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=cwd, env=env)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=guard(timeout), cwd=cwd, env=env)
 
 
 def shear(*args, **kw):

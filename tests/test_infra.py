@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 from slepc4py import SLEPc
+from hang_guard import guard
 
 
 def _laplacian_1d(n, comm):
@@ -169,3 +170,13 @@ def test_h5py_parallel_write(comm, mpi_tmp_path):
     comm.Barrier()
     with h5py.File(path, "r") as f:
         np.testing.assert_array_equal(f["rank"][...], np.arange(comm.Get_size()))
+
+
+def test_hang_guards_scale_with_the_test_timeout(monkeypatch):
+    """PARFLOW_TEST_TIMEOUT above its default gives the subprocess hang guards the same
+    factor; at or below it (and 0, no watchdog) they stay as written."""
+    for value, expected in (("600", 120.0), ("1800", 360.0), ("300", 120.0), ("0", 120.0)):
+        monkeypatch.setenv("PARFLOW_TEST_TIMEOUT", value)
+        assert guard(120) == expected
+    monkeypatch.delenv("PARFLOW_TEST_TIMEOUT")
+    assert guard(30) == 30.0

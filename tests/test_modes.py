@@ -11,6 +11,7 @@ from systems import dense_operators, random_bonded_state, run_scene
 
 from parflow import modes
 from parflow.scene import load_scene
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only       # serial scipy analysis; the CLI test launches a process
 
@@ -51,7 +52,7 @@ def test_cli_on_a_network_run(tmp_path):
     _network_run(run, "[observables]\nsnapshot_every = 5\n")
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     res = subprocess.run([sys.executable, "-m", "parflow.modes", str(run), "--k", "2"],
-                         capture_output=True, text=True, env=env, timeout=300)
+                         capture_output=True, text=True, env=env, timeout=guard(300))
     assert res.returncode == 0, res.stderr
     out = tmp_path / "net.modes.h5"
     assert (tmp_path / "net_plots" / "modes.png").exists()
@@ -67,6 +68,6 @@ def test_cli_on_a_network_run(tmp_path):
     run2 = tmp_path / "bare.h5"
     _network_run(run2)
     res = subprocess.run([sys.executable, "-m", "parflow.modes", str(run2)],
-                         capture_output=True, text=True, env=env, timeout=120)
+                         capture_output=True, text=True, env=env, timeout=guard(120))
     assert res.returncode == 2 and "snapshot_every" in res.stderr
     assert not (tmp_path / "bare.modes.h5").exists()

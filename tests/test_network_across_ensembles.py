@@ -18,6 +18,7 @@ import pytest
 from parflow.post import network_across_ensembles as nae
 from parflow.post.ensemble import GRID_POINTS, on_grid
 from parflow.post.network import fit_omega_star
+from hang_guard import guard
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -176,7 +177,7 @@ def tiny(tmp_path_factory):
     (d / "scene.toml").write_text(SCENE.format(spectrum="dense"))
     res = subprocess.run([sys.executable, "-m", "parflow.shear", str(d / "scene.toml"),
                           "--output", str(d / "z3.8"), "--quiet", "--no-plots"],
-                         capture_output=True, text=True, timeout=120,
+                         capture_output=True, text=True, timeout=guard(120),
                          env=dict(os.environ, PYTHONPATH=ROOT))
     assert res.returncode == 0, res.stderr
     return d

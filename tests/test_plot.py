@@ -19,6 +19,7 @@ from parflow.post import fits as post_fits
 from parflow.post import network as post_network
 from parflow.post import report as post_report
 from parflow.post import suspension as post_suspension
+from hang_guard import guard
 
 PNG = b"\x89PNG\r\n\x1a\n"
 ALL = ["chain_forward", "chain_reverse", "chain_correlation", "chain_lengths",
@@ -242,7 +243,7 @@ def test_module_entry_point_without_petsc(tmp_path):
         "       if m in sys.modules]\n"
         "print('exit', code, 'imported', bad)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=120)
+                       timeout=guard(120))
     assert r.stdout.strip() == "exit 2 imported []", r.stdout + r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "no such file" in r.stderr
 

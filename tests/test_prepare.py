@@ -12,6 +12,7 @@ from parflow.models import suspension as su
 from parflow.geometry import cell_at, velocity_gradient
 from parflow.models import suspension as msu
 from parflow.state import InputError
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only       # pure numpy; the CLI test launches a process
 
@@ -54,7 +55,7 @@ def test_cli_from_a_run_file(tmp_path):
 
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "parflow.prepare", "compress", *map(str, args)],
-                              capture_output=True, text=True, env=env, timeout=120)
+                              capture_output=True, text=True, env=env, timeout=guard(120))
     out = tmp_path / "c.npz"
     res = cli(run, "--phi", 0.78, "--out", out)              # checkpoint at gamma = 0.01
     assert res.returncode == 2 and "not a rectangle" in res.stderr and not out.exists()
@@ -94,7 +95,7 @@ def test_ensemble_folder_compressed_into_one_start_per_sample(tmp_path):
 
     def run(*args, module="parflow.shear"):
         return subprocess.run([sys.executable, "-m", module, *map(str, args)],
-                              capture_output=True, text=True, env=env, timeout=300)
+                              capture_output=True, text=True, env=env, timeout=guard(300))
     (tmp_path / "a.toml").write_text(ENSEMBLE_SCENE.format(phi=0.76, config="", samples=2,
                                                            strain=1.0))
     res = run(tmp_path / "a.toml", "--output", tmp_path / "ens", "--quiet", "--no-plots")

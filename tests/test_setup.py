@@ -6,6 +6,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only      # shells out; nothing MPI about it
 
@@ -27,7 +28,7 @@ def _source(shell_cmd, env):
     script = shell_cmd + ' -c \'. scripts/env.sh; echo "PETSC_DIR=${PETSC_DIR-<unset>}"; ' \
                          'echo "SLEPC_DIR=${SLEPC_DIR-<unset>}"\''
     return subprocess.run(script, shell=True, cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=30)
+                          timeout=guard(30))
 
 
 @pytest.mark.parametrize("shell", ["bash -euo pipefail", "sh -eu"])
@@ -71,14 +72,14 @@ def test_env_sh_pins_the_blas_kernels(tmp_path, shell):
     probe = shell + """ -c '. scripts/env.sh; echo "CORE=$OPENBLAS_CORETYPE"; \
         .venv/bin/python -c "from parflow.provenance import kernels; print(kernels())"'"""
     res = subprocess.run(probe, shell=True, cwd=REPO, env=env, capture_output=True,
-                         text=True, timeout=60)
+                         text=True, timeout=guard(60))
     assert res.returncode == 0, res.stderr
     assert "CORE=Haswell" in res.stdout and "openblas Haswell, numpy AVX2" in res.stdout, \
         res.stdout + res.stderr
     assert "AVX512" not in res.stdout and "cannot disable" not in res.stderr, res.stderr
     res = subprocess.run(shell + """ -c '. scripts/env.sh; echo "CORE=$OPENBLAS_CORETYPE"'""",
                          shell=True, cwd=REPO, env=dict(env, OPENBLAS_CORETYPE="Sandybridge"),
-                         capture_output=True, text=True, timeout=30)
+                         capture_output=True, text=True, timeout=guard(30))
     assert "CORE=Sandybridge" in res.stdout, res.stdout + res.stderr
 
 
@@ -87,7 +88,7 @@ def test_setup_reaches_apt_on_a_machine_without_petsc(tmp_path):
     installed) when none of the system packages is there."""
     env = _env(tmp_path, PARFLOW_SETUP_DRY_RUN="1")
     res = subprocess.run(["bash", "scripts/setup.sh"], cwd=REPO, env=env, capture_output=True,
-                         text=True, timeout=120)
+                         text=True, timeout=guard(120))
     assert res.returncode == 0, res.stdout + res.stderr
     assert "dry run: would run apt-get update && apt-get install -y" in res.stdout, res.stdout
     assert "python3-petsc4py" in res.stdout and "openmpi-bin" in res.stdout
@@ -100,13 +101,13 @@ def test_ci_entry_point_runs_the_readme_test_command():
     readme = (REPO / "README.md").read_text()
     assert "make test" in readme and "make run" in readme
     res = subprocess.run(["make", "-n", "test"], cwd=REPO, capture_output=True, text=True,
-                         timeout=60)
+                         timeout=guard(60))
     assert res.returncode == 0, res.stderr
     assert "pytest" in res.stdout and "mpirun" in res.stdout
     # a selection that matches no test is pytest's exit 5: make must fail on it, not pass
     res = subprocess.run(["make", "--no-print-directory", "test-serial",
                           "PYTEST_ARGS=tests/test_setup.py -k no_such_test_anywhere"],
-                         cwd=REPO, capture_output=True, text=True, timeout=120)
+                         cwd=REPO, capture_output=True, text=True, timeout=guard(120))
     assert res.returncode != 0, res.stdout
     # pytest's own words for it ("deselected" in one process, "no tests ran" under xdist),
     # and make reporting exit status 5
@@ -121,7 +122,7 @@ def test_serial_tests_run_on_every_core_even_after_env_sh():
     env = dict(os.environ, OMP_NUM_THREADS="1")
     env.pop("TEST_JOBS", None)
     res = subprocess.run(["make", "-n", "--no-print-directory", "test-serial"], cwd=REPO, env=env,
-                         capture_output=True, text=True, timeout=60)
+                         capture_output=True, text=True, timeout=guard(60))
     assert res.returncode == 0, res.stderr
     assert f"jobs={cores};" in res.stdout, res.stdout
 

@@ -15,6 +15,7 @@ import time
 
 import h5py
 import pytest
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only      # each test launches its own processes
 
@@ -49,7 +50,7 @@ def _mpirun():
     return shutil.which("mpirun") or "mpirun"
 
 
-def _wait_for_rows(proc, out, rows=5, timeout=60.0):
+def _wait_for_rows(proc, out, rows=5, timeout=guard(60.0)):
     """Until the file holds more than ``rows`` time-series rows (the run loop is going)."""
     deadline = time.time() + timeout
     while time.time() < deadline:
@@ -78,7 +79,7 @@ def _signal_run(cmd, out, sig, group=False):
             os.killpg(proc.pid, sig)
         else:
             proc.send_signal(sig)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=guard(60))
     finally:
         if proc.poll() is None:          # (a failed assertion above: leave nothing running)
             proc.kill()
@@ -99,7 +100,7 @@ def _assert_stopped(code, err, out, sig, expect_code=None, restart_cmd=()):
         assert int(f["checkpoint"].attrs["step"]) == int(f["timeseries/step"][-1]) == n - 1
     res = subprocess.run([*restart_cmd, sys.executable, "-m", "parflow.shear", "--restart",
                           str(out), "--max-steps", str(n + 3), "--no-plots", "--quiet"],
-                         env=_env(), cwd=ROOT, capture_output=True, text=True, timeout=120)
+                         env=_env(), cwd=ROOT, capture_output=True, text=True, timeout=guard(120))
     assert res.returncode == 0, res.stderr
     with h5py.File(out) as f:
         assert f.attrs["status"] == "budget" and int(f["timeseries/step"][-1]) == n + 3
@@ -141,7 +142,7 @@ def test_launcher_relays_term_and_int(tmp_path, sig):
 
 def test_launcher_without_mpirun(tmp_path):
     res = subprocess.run([LAUNCHER, "-n", "2", "true"], capture_output=True, text=True,
-                         env=dict(_env(), MPIRUN=str(tmp_path / "no-mpirun")), timeout=30)
+                         env=dict(_env(), MPIRUN=str(tmp_path / "no-mpirun")), timeout=guard(30))
     assert res.returncode == 2
     assert res.stderr.startswith("mpirun-parflow: error: ") and "not found" in res.stderr
     assert len(res.stderr.splitlines()) == 1
