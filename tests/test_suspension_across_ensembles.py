@@ -15,6 +15,7 @@ import pytest
 
 from parflow.post import suspension_across_ensembles as sae
 from systems import SUSPENSION_ENSEMBLE_SCENE
+from hang_guard import guard
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -110,7 +111,7 @@ def tiny(tmp_path_factory):
         (d / f"scene{phi}.toml").write_text(SCENE.format(phi=phi))
         res = subprocess.run([sys.executable, "-m", "parflow.shear", str(d / f"scene{phi}.toml"),
                               "--output", str(d / f"phi{phi}"), "--quiet", "--no-plots"],
-                             capture_output=True, text=True, timeout=300,
+                             capture_output=True, text=True, timeout=guard(300),
                              env=dict(os.environ, PYTHONPATH=ROOT))
         assert res.returncode == 0, res.stderr
     return d

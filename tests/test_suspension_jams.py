@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from parflow.post import suspension_jams as sj
+from hang_guard import guard
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = """
@@ -134,7 +135,7 @@ def test_table_round_trip_and_figure(folders, tmp_path):
 def test_command_line(folders, tmp_path):
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "parflow.post.suspension_jams", *args],
-                              capture_output=True, text=True, cwd=ROOT, timeout=120)
+                              capture_output=True, text=True, cwd=ROOT, timeout=guard(120))
     res = cli(str(folders), "--json", str(tmp_path / "r.json"))
     assert res.returncode == 0, res.stderr
     assert "phi_inf" in res.stdout and json.load(open(tmp_path / "r.json"))["table"]
@@ -324,7 +325,7 @@ def test_command_line_on_run_files(tmp_path):
     single_run(tmp_path / "b.h5", "jammed", ramp, [0.0, 0.5, 1.0, 1.5], jam={}, seed=6)
     res = subprocess.run([sys.executable, "-m", "parflow.post.suspension_jams",
                           str(tmp_path / "a.h5"), str(tmp_path / "b.h5")],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+                         capture_output=True, text=True, cwd=ROOT, timeout=guard(120))
     assert res.returncode == 0, res.stderr
     lines = res.stdout.splitlines()
     k = [i for i, ln in enumerate(lines) if ln.startswith("jams at constant phi")]
@@ -334,6 +335,6 @@ def test_command_line_on_run_files(tmp_path):
         fh.write("not hdf5")
     res = subprocess.run([sys.executable, "-m", "parflow.post.suspension_jams",
                           str(tmp_path / "c.h5")],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+                         capture_output=True, text=True, cwd=ROOT, timeout=guard(120))
     assert res.returncode == 2 and "not a readable suspension run file" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1

@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 import pytest
 from test_signals import _assert_stopped, _signal_run
+from hang_guard import guard
 
 pytestmark = pytest.mark.serial_only      # each test launches its own processes
 
@@ -36,7 +37,7 @@ def _shear(*args, mpi=0, timeout=180):
     cmd = [sys.executable, "-m", "parflow.shear", *map(str, args), "--quiet", "--no-plots"]
     if mpi:
         cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi)] + cmd
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=guard(timeout), cwd=ROOT,
                           env=dict(os.environ, PYTHONPATH=ROOT))
 
 
