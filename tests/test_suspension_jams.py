@@ -219,9 +219,10 @@ def test_rate_figure_with_a_second_rate(folders):
     assert x[1] / x[0] == pytest.approx(4.0)
 
 
-def single_run(path, status, phi_ts, strain_ts, jam=None, rate=0.02, to=0.840, seed=5):
+def single_run(path, status, phi_ts, strain_ts, jam=None, rate=0.02, to=0.840, seed=5,
+               sigma=None):
     """A single flowing run's file (as runs/suspension_phi0.840_flowing_seed*.toml write
-    them): phi and strain columns, /jam for a certified jam."""
+    them): phi and strain columns (and sigma, if given), /jam for a certified jam."""
     with h5py.File(path, "w") as f:
         f.attrs.update(format="parflow-run-1", model="suspension", status=status,
                        scene=SCENE.format(N=4096, rate=rate, to=to), sample_seed=seed,
@@ -229,6 +230,8 @@ def single_run(path, status, phi_ts, strain_ts, jam=None, rate=0.02, to=0.840, s
         g = f.create_group("timeseries")
         g["phi"] = np.asarray(phi_ts, float)
         g["gamma"] = g["strain"] = np.asarray(strain_ts, float)
+        if sigma is not None:
+            g["sigma"] = np.asarray(sigma, float)
         if jam is not None:
             j = f.create_group("jam")
             j.attrs.update(certified=True, gamma=strain_ts[-1], support=7800, tau_b=-100.0,
@@ -290,6 +293,77 @@ def test_jam_rate_at_constant_phi(tmp_path):
     single_run(tmp_path / "seed10.h5", "jammed", ramp, [0.0, 0.5, 1.0, 1.2, 1.3], seed=10)
     (row,) = sj.constant_phi_rates(sj.read_sources([str(tmp_path)]))
     assert row["uncertified"] == 1 and row["n_samples"] == 2
+
+
+def _peaks_by_loop(sig, on, off):
+    """Stress excursions the plain way: a state machine over the rows."""
+    out, inside = [], False
+    for x in sig:
+        if not inside and x >= on:
+            inside = True
+            out.append(x)
+        elif inside and x < off:
+            inside = False
+        elif inside:
+            out[-1] = max(out[-1], x)
+    return out
+
+
+def test_excursion_peaks():
+    """An excursion runs from sigma >= on to the first row below off (hovering between the two
+    is one excursion), the last one may be open; the vectorised peaks equal a plain state
+    machine's on random series."""
+    e = sj.excursion_peaks
+    assert e([10, 2e3, 500, 3e3, 50, 5e4, 1e5, 20, 1e3]).tolist() == [3e3, 1e5, 1e3]
+    assert e([]).size == 0 and e([5, 99, 999]).size == 0 and e([2e3]).tolist() == [2e3]
+    assert e([1e3, 99.9, 1e3, 100.0, 7e3], on=1e3, off=1e2).tolist() == [1e3, 7e3]
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        sig = 10 ** rng.uniform(0, 5, rng.integers(1, 400))
+        assert e(sig, 1e3, 1e2).tolist() == _peaks_by_loop(sig, 1e3, 1e2)
+
+
+def test_excursions_at_constant_phi_pooled(tmp_path):
+    """A run's excursions are those of its rows at the final phi (the rows of its exposure);
+    per (N, phi) they are pooled over the samples that recorded them, per unit strain; a
+    sample from a table written before excursions were recorded is left out of them (not of
+    the jams); the text output and the figure show them."""
+    from parflow.plot.suspension_jams import _figures, excursion_figure
+    ramp = [0.820, 0.830, 0.840, 0.840, 0.840, 0.840]
+    # 5e3 while the discs still swell: not counted
+    single_run(tmp_path / "a.h5", "interrupted", ramp, [0.0, 0.5, 1.0, 1.5, 2.0, 3.0],
+               sigma=[50, 5e3, 200, 2e4, 50, 3e6])
+    single_run(tmp_path / "b.h5", "jammed", ramp[:5], [0.0, 0.5, 1.0, 1.5, 2.0], jam={},
+               seed=6, sigma=[50, 60, 2e3, 90, 2e8])
+    recs = sj.read_sources([str(tmp_path)])
+    by = {r["source"]: r for r in recs}
+    assert by["a"]["excursion_peaks"] == [2e4, 3e6]
+    assert by["b"]["excursion_peaks"] == [2e3, 2e8]          # the jam: its open excursion
+    table = sj.export([str(tmp_path)], str(tmp_path / "t.json"))    # the peaks kept in a table
+    assert {r["source"]: r["excursion_peaks"] for r in sj.load_table(table)} == \
+        {"a": [2e4, 3e6], "b": [2e3, 2e8]}
+    os.remove(table)
+    (row,) = sj.constant_phi_rates(recs)
+    ex = row["excursions"]
+    assert (ex["n_samples"], ex["strain"]) == (2, pytest.approx(3.0))
+    assert ex["levels"] == list(sj.EXCURSION_LEVELS)
+    assert ex["counts"] == [4, 3, 2, 2, 1]
+    assert ex["per_strain"] == pytest.approx([4 / 3, 1.0, 2 / 3, 2 / 3, 1 / 3])
+    # a record without peaks (an older table): out of the excursions' pool only
+    old = dict(by["b"], source="old", excursion_peaks=math.nan)
+    (row,) = sj.constant_phi_rates(recs + [old])
+    assert row["n_samples"] == 3 and row["excursions"]["n_samples"] == 2
+    text = "\n".join(sj.format_rates([row]))
+    assert "stress excursions (sigma >= 1000 until below 100) of 2 samples in 3.00 strain" in text
+    res = dict(table=[], records=[], fits={}, fits_free={}, rates=[row])
+    assert "suspension_excursions" in [n for n, _ in _figures(res)]
+    ax = excursion_figure(dict(res, rates=[dict(row, n_samples=2, n_jams=1, rate=1 / 3.0)])).axes[0]
+    (line,) = [ln for ln in ax.lines if ln.get_marker() == "o"]
+    assert np.allclose(line.get_ydata(), ex["per_strain"])
+    assert [ln.get_ydata()[0] for ln in ax.lines if ln.get_linestyle() == "--"] == \
+        [pytest.approx(1 / 3.0)]
+    res["rates"] = [dict(row, excursions=dict(ex, n_samples=0, strain=0.0))]
+    assert "suspension_excursions" not in [n for n, _ in _figures(res)]
 
 
 def test_jam_rate_figure():

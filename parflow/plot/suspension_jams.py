@@ -15,6 +15,10 @@
   the certified jams per unit strain at constant phi against N, with the exact Poisson 95 %
   interval; a size with no jam yet is drawn as its upper bound (a triangle pointing down);
   each point labelled with its count and strain.
+* ``suspension_excursions`` (where a constant-phi row has stress excursions recorded): the
+  excursions per unit strain whose peak sigma reaches each level, against the level, one
+  line per (N, phi); the certified jams per unit strain of the same samples beside them (a
+  dashed line in the same colour: a jam is an excursion that does not come back).
 
 ``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
 ``python -m parflow.post.suspension_jams``).
@@ -167,12 +171,51 @@ def jam_rate_figure(res: dict) -> Figure:
     return fig
 
 
+def _excursion_rows(res: dict) -> list:
+    """The constant-phi rows with stress excursions recorded (a strain to divide by)."""
+    return [r for r in res.get("rates", [])
+            if r.get("excursions") and r["excursions"]["n_samples"]
+            and r["excursions"]["strain"] > 0]
+
+
+def excursion_figure(res: dict) -> Figure:
+    """Stress excursions per unit strain whose peak reaches sigma, against sigma, one colour
+    per (N, phi); the same samples' certified jams per unit strain as a dashed line."""
+    fig = new_figure(6.4, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    for k, r in enumerate(sorted(_excursion_rows(res), key=lambda r: (r["phi"], r["N"]))):
+        e, color = r["excursions"], f"C{k}"
+        x = np.array(e["levels"], float)
+        y = np.array(e["per_strain"], float)
+        hit = y > 0
+        ax.plot(x[hit], y[hit], "o-", color=color, ms=5,
+                label=f"N = {r['N']}, φ = {r['phi']:.4f}: {e['n_samples']} samples, "
+                      f"{e['strain']:.3g} strain")
+        if r["n_jams"] > 0 and e["n_samples"] == r["n_samples"]:
+            ax.axhline(r["rate"], color=color, ls="--", lw=1,
+                       label=f"   certified jams: {r['n_jams']} ({r['rate']:.3g} per unit strain)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("σ reached at the peak")
+    ax.set_ylabel("excursions per unit strain")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left")
+    rows = _excursion_rows(res)
+    on, off = (rows[0]["excursions"]["on"], rows[0]["excursions"]["off"]) if rows else (0, 0)
+    ax.set_title(f"Stress excursions of flowing suspensions at constant φ: σ ≥ {on:g} until "
+                 f"back below {off:g}\n(dashed: the certified jams, excursions that do not "
+                 f"come back)", fontsize=8.5)
+    return fig
+
+
 def _figures(res: dict) -> list:
     out = [("suspension_jams_phiSJ", phi_sj_figure(res))]
     if len({t["compress_rate"] for t in res["table"] if t["n_shear_jams"]}) > 1:
         out.append(("suspension_jams_rate", phi_sj_rate_figure(res)))
     if _rate_phis(res):
         out.append(("suspension_jams_per_strain", jam_rate_figure(res)))
+    if _excursion_rows(res):
+        out.append(("suspension_excursions", excursion_figure(res)))
     return out
 
 

@@ -38,6 +38,15 @@ interval and the chance that a sample flows 3 strain there without a jam (the pa
 Single run files enter as well (the flowing seeds of runs/, e.g.
 runs/suspension_phi0.840_flowing_seed*.toml).
 
+Stress excursions at constant phi (:func:`excursion_peaks`): the near-jams that came back.
+An excursion starts at a row with sigma >= EXCURSION_ON and ends at the first row after it
+with sigma < EXCURSION_OFF (the hysteresis counts a stretch that hovers about EXCURSION_ON
+once); its peak is the largest sigma within.  Per (N, phi), pooled like the jams: the
+excursions whose peak reaches each of EXCURSION_LEVELS, per unit strain.  A certified jam
+ends a sample inside its last excursion (counted, still open).  They are not independent
+events (a sample that wanders near a jammed configuration makes many in a row), so no
+Poisson interval is given for them.
+
 ``python -m parflow.post.suspension_jams PATH... [--json OUT] [--export FILE]`` prints the
 tables and the fit; a PATH is an ensemble folder, a jam table, a suspension run file, or a
 folder searched one level down for them.  Figure: ``python -m parflow.plot.suspension_jams PATH...``.
@@ -68,9 +77,33 @@ RECORD_KEYS = ("source", "sample", "seed", "N", "compress_rate", "compress_to", 
 # keys a table may lack (written before they existed): read as NaN -- except strain_at_phi of
 # a sample that was not compressed, which is then its last gamma (every suspension scene
 # such a table came from ran one forward leg)
-OPTIONAL_KEYS = ("strain_at_phi",)
+OPTIONAL_KEYS = ("strain_at_phi", "excursion_peaks")
 RATE_CI = 0.95                 # the coverage of the jam rate's interval (exact Poisson)
+# a stress excursion: sigma rises to >= EXCURSION_ON, and it is over when sigma falls below
+# EXCURSION_OFF (flowing at phi = 0.840, N = 4096: sigma's median ~200, 5-95 % ~70-830)
+EXCURSION_ON = 1e3
+EXCURSION_OFF = 1e2
+EXCURSION_LEVELS = (1e3, 1e4, 1e5, 1e6, 1e7)   # the peaks counted: excursions reaching each
 FLOW_STRAIN = 3.0              # the strain the paper ran before its statistics (300 %)
+
+
+def excursion_peaks(sigma, on: float = EXCURSION_ON, off: float = EXCURSION_OFF) -> np.ndarray:
+    """The peak of each stress excursion of the time series ``sigma`` (module docstring): a
+    stretch from a row with sigma >= ``on`` to the last row before sigma falls below ``off``
+    (or to the end of the series: an excursion still open), in order."""
+    sig = np.asarray(sigma, float)
+    if sig.size == 0:
+        return np.zeros(0)
+    idx = np.arange(sig.size)
+    # inside an excursion: the last row at or above `on` is later than the last row below `off`
+    last_on = np.maximum.accumulate(np.where(sig >= on, idx, -1))
+    last_off = np.maximum.accumulate(np.where(sig < off, idx, -1))
+    inside = last_on > last_off
+    if not inside.any():
+        return np.zeros(0)
+    start = inside & ~np.r_[False, inside[:-1]]
+    vals = sig[inside]
+    return np.fmax.reduceat(vals, np.flatnonzero(start[inside]))     # fmax: a NaN row is passed over
 
 
 def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
@@ -100,8 +133,13 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
     strain = ts.get("strain", ts.get("gamma", []))
     if rate > 0:            # exposed from where phi reached compress_to (no phi column: unknown)
         at_phi = strain_at_final_phi(strain, phi_ts, to) if phi_ts is not None else nan
+        first = np.flatnonzero(np.asarray(phi_ts, float) >= to) if phi_ts is not None else []
     else:
         at_phi = float(strain[-1]) if len(strain) else nan
+        first = [0]
+    sig = ts.get("sigma")
+    # the excursions over the same rows as the exposure (None: no sigma column, or never there)
+    peaks = excursion_peaks(sig[first[0]:]).tolist() if sig is not None and len(first) else None
     return dict(source=source, sample=int(sample), seed=int(attrs.get("sample_seed", -1)),
                 N=int(model.get("N", 0)), compress_rate=rate, compress_to=to, status=status,
                 shear_jam=bool(jammed and tbs < 0),
@@ -112,7 +150,8 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
                 support=int(jam.get("support", 0)) if jammed else 0,
                 tau_b=float(jam.get("tau_b", nan)) if jammed else nan, tau_b_shear=tbs,
                 strain_budget=float(jam.get("strain_budget", nan)) if jammed else nan,
-                git_commit=str(attrs.get("git_commit", "")), strain_at_phi=at_phi)
+                git_commit=str(attrs.get("git_commit", "")), strain_at_phi=at_phi,
+                excursion_peaks=peaks)
 
 
 def read_folder(folder: str) -> list[dict]:
@@ -300,8 +339,23 @@ def constant_phi_rates(recs: list) -> list[dict]:
                          rate_ci=ci, p_flow=math.exp(-FLOW_STRAIN * rate) if strain > 0
                          else math.nan,
                          p_flow_ci=[math.exp(-FLOW_STRAIN * ci[1]), math.exp(-FLOW_STRAIN * ci[0])],
-                         uncertified=len(bad), sources=sorted({r["source"] for r in rs})))
+                         uncertified=len(bad), sources=sorted({r["source"] for r in rs}),
+                         excursions=_excursions(rs)))
     return rows
+
+
+def _excursions(rs: list) -> dict:
+    """The stress excursions of the samples ``rs`` pooled (those with a peak list: a table
+    written before excursions were recorded has none): the strain they ran, and per level of
+    EXCURSION_LEVELS the excursions whose peak reached it, their count and per unit strain."""
+    known = [r for r in rs if isinstance(r.get("excursion_peaks"), list)]
+    strain = float(sum(r["strain_at_phi"] for r in known))
+    peaks = np.array([p for r in known for p in r["excursion_peaks"]], float)
+    counts = [int(np.count_nonzero(peaks >= lv)) for lv in EXCURSION_LEVELS]
+    return dict(n_samples=len(known), strain=strain, levels=list(EXCURSION_LEVELS),
+                counts=counts, per_strain=[c / strain if strain > 0 else math.nan
+                                           for c in counts],
+                on=EXCURSION_ON, off=EXCURSION_OFF)
 
 
 def analyse(paths) -> dict:
@@ -354,6 +408,13 @@ def format_rates(rates: list) -> list[str]:
                    f"{t['p_flow_ci'][1]:.2f})"
                    + (f"  [{t['uncertified']} jammed without a certificate left out]"
                       if t["uncertified"] else ""))
+        e = t.get("excursions")
+        if e and e["n_samples"] and e["strain"] > 0:
+            out.append(f"{'':27s}stress excursions (sigma >= {e['on']:g} until below "
+                       f"{e['off']:g}) of {e['n_samples']} samples in {e['strain']:.2f} strain, "
+                       f"per unit strain reaching "
+                       + ", ".join(f"{lv:.0e}: {x:.3g}" for lv, x in
+                                   zip(e["levels"], e["per_strain"])))
     return out
 
 
