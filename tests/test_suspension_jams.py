@@ -295,15 +295,20 @@ def test_jam_rate_at_constant_phi(tmp_path):
     assert row["uncertified"] == 1 and row["n_samples"] == 2
 
 
-def _peaks_by_loop(sig, on, off):
-    """Stress excursions the plain way: a state machine over the rows."""
-    out, inside = [], False
-    for x in sig:
+def _peaks_by_loop(sig, on, off, steps=None, quiet=0.0):
+    """Stress excursions the plain way: a state machine over the rows (``steps``: each row's
+    strain; an excursion ends once the rows below ``off`` in a row add up to ``quiet``)."""
+    out, inside, low = [], False, 0.0
+    for k, x in enumerate(sig):
+        if x < off:
+            low += steps[k] if steps is not None else math.inf
+            if inside and low >= quiet:
+                inside = False
+            continue
+        low = 0.0
         if not inside and x >= on:
             inside = True
             out.append(x)
-        elif inside and x < off:
-            inside = False
         elif inside:
             out[-1] = max(out[-1], x)
     return out
@@ -317,10 +322,20 @@ def test_excursion_peaks():
     assert e([10, 2e3, 500, 3e3, 50, 5e4, 1e5, 20, 1e3]).tolist() == [3e3, 1e5, 1e3]
     assert e([]).size == 0 and e([5, 99, 999]).size == 0 and e([2e3]).tolist() == [2e3]
     assert e([1e3, 99.9, 1e3, 100.0, 7e3], on=1e3, off=1e2).tolist() == [1e3, 7e3]
+    # with the strain: a dip of little strain (after a cut step) does not end an excursion,
+    # low rows that add up to the quiet strain do
+    sig = [2e3, 5.0, 4e4, 50, 60, 2e3]
+    strain = np.cumsum([1e-4, 1e-6, 1e-5, 6e-4, 6e-4, 1e-4])
+    assert e(sig, strain, quiet=1e-3).tolist() == [4e4, 2e3]
+    assert e(sig, strain, quiet=2e-3).tolist() == [4e4]
+    assert e(sig).tolist() == e(sig, strain, quiet=0.0).tolist() == [2e3, 4e4, 2e3]
     rng = np.random.default_rng(3)
     for _ in range(20):
-        sig = 10 ** rng.uniform(0, 5, rng.integers(1, 400))
-        assert e(sig, 1e3, 1e2).tolist() == _peaks_by_loop(sig, 1e3, 1e2)
+        n = int(rng.integers(1, 400))
+        sig, steps = 10 ** rng.uniform(0, 5, n), 10 ** rng.uniform(-6, -3, n)
+        assert e(sig, on=1e3, off=1e2).tolist() == _peaks_by_loop(sig, 1e3, 1e2)
+        assert e(sig, np.cumsum(steps), quiet=1e-3).tolist() == \
+            _peaks_by_loop(sig, 1e3, 1e2, np.r_[0.0, steps[1:]], 1e-3)
 
 
 def test_excursions_at_constant_phi_pooled(tmp_path):
@@ -354,7 +369,7 @@ def test_excursions_at_constant_phi_pooled(tmp_path):
     (row,) = sj.constant_phi_rates(recs + [old])
     assert row["n_samples"] == 3 and row["excursions"]["n_samples"] == 2
     text = "\n".join(sj.format_rates([row]))
-    assert "stress excursions (sigma >= 1000 until below 100) of 2 samples in 3.00 strain" in text
+    assert "stress excursions (sigma >= 1000 until below 100 for 0.001 strain) of 2 samples in 3.00 strain" in text
     res = dict(table=[], records=[], fits={}, fits_free={}, rates=[row])
     assert "suspension_excursions" in [n for n, _ in _figures(res)]
     ax = excursion_figure(dict(res, rates=[dict(row, n_samples=2, n_jams=1, rate=1 / 3.0)])).axes[0]

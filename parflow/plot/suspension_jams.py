@@ -201,10 +201,10 @@ def excursion_figure(res: dict) -> Figure:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="lower left")
     rows = _excursion_rows(res)
-    on, off = (rows[0]["excursions"]["on"], rows[0]["excursions"]["off"]) if rows else (0, 0)
-    ax.set_title(f"Stress excursions of flowing suspensions at constant φ: σ ≥ {on:g} until "
-                 f"back below {off:g}\n(dashed: the certified jams, excursions that do not "
-                 f"come back)", fontsize=8.5)
+    e = rows[0]["excursions"] if rows else dict(on=0, off=0)
+    ax.set_title(f"Stress excursions of flowing suspensions at constant φ: σ ≥ {e['on']:g} "
+                 f"until below {e['off']:g} for {e.get('quiet', 0):g} strain\n(dashed: the "
+                 f"certified jams, excursions that do not come back)", fontsize=8.5)
     return fig
 
 

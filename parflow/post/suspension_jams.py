@@ -39,9 +39,11 @@ Single run files enter as well (the flowing seeds of runs/, e.g.
 runs/suspension_phi0.840_flowing_seed*.toml).
 
 Stress excursions at constant phi (:func:`excursion_peaks`): the near-jams that came back.
-An excursion starts at a row with sigma >= EXCURSION_ON and ends at the first row after it
-with sigma < EXCURSION_OFF (the hysteresis counts a stretch that hovers about EXCURSION_ON
-once); its peak is the largest sigma within.  Per (N, phi), pooled like the jams: the
+An excursion starts at a row with sigma >= EXCURSION_ON and ends where sigma has stayed below
+EXCURSION_OFF for EXCURSION_QUIET strain (the hysteresis counts a stretch that hovers about
+EXCURSION_ON once, and the quiet strain passes over the single low rows that follow a cut
+step near a jam: docs/suspensions.md, "sigma of single steps near a jam depends on the step
+size"); its peak is the largest sigma within.  Per (N, phi), pooled like the jams: the
 excursions whose peak reaches each of EXCURSION_LEVELS, per unit strain.  A certified jam
 ends a sample inside its last excursion (counted, still open).  They are not independent
 events (a sample that wanders near a jammed configuration makes many in a row), so no
@@ -79,25 +81,39 @@ RECORD_KEYS = ("source", "sample", "seed", "N", "compress_rate", "compress_to", 
 # such a table came from ran one forward leg)
 OPTIONAL_KEYS = ("strain_at_phi", "excursion_peaks")
 RATE_CI = 0.95                 # the coverage of the jam rate's interval (exact Poisson)
-# a stress excursion: sigma rises to >= EXCURSION_ON, and it is over when sigma falls below
-# EXCURSION_OFF (flowing at phi = 0.840, N = 4096: sigma's median ~200, 5-95 % ~70-830)
+# a stress excursion: sigma rises to >= EXCURSION_ON, and it is over when sigma has stayed
+# below EXCURSION_OFF for EXCURSION_QUIET strain (flowing at phi = 0.840, N = 4096: sigma's
+# median ~200, 5-95 % ~70-830; a step ~1e-4 strain, so the quiet strain is ~10 calm steps)
 EXCURSION_ON = 1e3
 EXCURSION_OFF = 1e2
+EXCURSION_QUIET = 1e-3
 EXCURSION_LEVELS = (1e3, 1e4, 1e5, 1e6, 1e7)   # the peaks counted: excursions reaching each
 FLOW_STRAIN = 3.0              # the strain the paper ran before its statistics (300 %)
 
 
-def excursion_peaks(sigma, on: float = EXCURSION_ON, off: float = EXCURSION_OFF) -> np.ndarray:
-    """The peak of each stress excursion of the time series ``sigma`` (module docstring): a
-    stretch from a row with sigma >= ``on`` to the last row before sigma falls below ``off``
-    (or to the end of the series: an excursion still open), in order."""
+def excursion_peaks(sigma, strain=None, on: float = EXCURSION_ON, off: float = EXCURSION_OFF,
+                    quiet: float = EXCURSION_QUIET) -> np.ndarray:
+    """The peak of each stress excursion of the time series ``sigma`` (module docstring), in
+    order: a stretch from a row with sigma >= ``on`` to the first row of a run of rows below
+    ``off`` whose steps add up to ``quiet`` strain or more (``strain``: the cumulative strain
+    of the rows; without it, or with quiet = 0, any row below ``off`` ends it), or to the end
+    of the series (an excursion still open)."""
     sig = np.asarray(sigma, float)
     if sig.size == 0:
         return np.zeros(0)
     idx = np.arange(sig.size)
-    # inside an excursion: the last row at or above `on` is later than the last row below `off`
+    below = sig < off
+    ends = below
+    if strain is not None and quiet > 0:
+        ds = np.diff(np.asarray(strain, float), prepend=float(strain[0]))   # each row's step
+        first = below & ~np.r_[False, below[:-1]]
+        run = np.cumsum(first) * below                  # 1, 2, ... per run of low rows; 0 else
+        long_run = np.bincount(run, weights=np.where(below, np.abs(ds), 0.0)) >= quiet
+        long_run[0] = False
+        ends = first & long_run[run]
+    # inside an excursion: the last row at or above `on` is later than the last end
     last_on = np.maximum.accumulate(np.where(sig >= on, idx, -1))
-    last_off = np.maximum.accumulate(np.where(sig < off, idx, -1))
+    last_off = np.maximum.accumulate(np.where(ends, idx, -1))
     inside = last_on > last_off
     if not inside.any():
         return np.zeros(0)
@@ -139,7 +155,8 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
         first = [0]
     sig = ts.get("sigma")
     # the excursions over the same rows as the exposure (None: no sigma column, or never there)
-    peaks = excursion_peaks(sig[first[0]:]).tolist() if sig is not None and len(first) else None
+    peaks = (excursion_peaks(sig[first[0]:], np.asarray(strain, float)[first[0]:]).tolist()
+             if sig is not None and len(first) and len(strain) == len(sig) else None)
     return dict(source=source, sample=int(sample), seed=int(attrs.get("sample_seed", -1)),
                 N=int(model.get("N", 0)), compress_rate=rate, compress_to=to, status=status,
                 shear_jam=bool(jammed and tbs < 0),
@@ -355,7 +372,7 @@ def _excursions(rs: list) -> dict:
     return dict(n_samples=len(known), strain=strain, levels=list(EXCURSION_LEVELS),
                 counts=counts, per_strain=[c / strain if strain > 0 else math.nan
                                            for c in counts],
-                on=EXCURSION_ON, off=EXCURSION_OFF)
+                on=EXCURSION_ON, off=EXCURSION_OFF, quiet=EXCURSION_QUIET)
 
 
 def analyse(paths) -> dict:
@@ -411,7 +428,8 @@ def format_rates(rates: list) -> list[str]:
         e = t.get("excursions")
         if e and e["n_samples"] and e["strain"] > 0:
             out.append(f"{'':27s}stress excursions (sigma >= {e['on']:g} until below "
-                       f"{e['off']:g}) of {e['n_samples']} samples in {e['strain']:.2f} strain, "
+                       f"{e['off']:g} for {e.get('quiet', 0):g} strain) of {e['n_samples']} "
+                       f"samples in {e['strain']:.2f} strain, "
                        f"per unit strain reaching "
                        + ", ".join(f"{lv:.0e}: {x:.3g}" for lv, x in
                                    zip(e["levels"], e["per_strain"])))
