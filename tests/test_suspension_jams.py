@@ -364,15 +364,17 @@ def test_excursions_at_constant_phi_pooled(tmp_path):
     assert ex["levels"] == list(sj.EXCURSION_LEVELS)
     assert ex["counts"] == [4, 3, 2, 2, 1]
     assert ex["per_strain"] == pytest.approx([4 / 3, 1.0, 2 / 3, 2 / 3, 1 / 3])
+    assert (ex["jams"], ex["jams_per_strain"]) == (1, pytest.approx(1 / 3))
     # a record without peaks (an older table): out of the excursions' pool only
     old = dict(by["b"], source="old", excursion_peaks=math.nan)
     (row,) = sj.constant_phi_rates(recs + [old])
     assert row["n_samples"] == 3 and row["excursions"]["n_samples"] == 2
+    assert row["n_jams"] == 2 and row["excursions"]["jams"] == 1
     text = "\n".join(sj.format_rates([row]))
     assert "stress excursions (sigma >= 1000 until below 100 for 0.001 strain) of 2 samples in 3.00 strain" in text
     res = dict(table=[], records=[], fits={}, fits_free={}, rates=[row])
     assert "suspension_excursions" in [n for n, _ in _figures(res)]
-    ax = excursion_figure(dict(res, rates=[dict(row, n_samples=2, n_jams=1, rate=1 / 3.0)])).axes[0]
+    ax = excursion_figure(res).axes[0]
     (line,) = [ln for ln in ax.lines if ln.get_marker() == "o"]
     assert np.allclose(line.get_ydata(), ex["per_strain"])
     assert [ln.get_ydata()[0] for ln in ax.lines if ln.get_linestyle() == "--"] == \

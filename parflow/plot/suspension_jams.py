@@ -18,7 +18,8 @@
 * ``suspension_excursions`` (where a constant-phi row has stress excursions recorded): the
   excursions per unit strain whose peak sigma reaches each level, against the level, one
   line per (N, phi); the certified jams per unit strain of the same samples beside them (a
-  dashed line in the same colour: a jam is an excursion that does not come back).
+  dashed line in the same colour: a jam is an excursion that does not come back; samples
+  read from a table without excursions are in neither).
 
 ``python -m parflow.plot.suspension_jams PATH... [--out DIR]`` (PATH as for
 ``python -m parflow.post.suspension_jams``).
@@ -191,9 +192,10 @@ def excursion_figure(res: dict) -> Figure:
         ax.plot(x[hit], y[hit], "o-", color=color, ms=5,
                 label=f"N = {r['N']}, φ = {r['phi']:.4f}: {e['n_samples']} samples, "
                       f"{e['strain']:.3g} strain")
-        if r["n_jams"] > 0 and e["n_samples"] == r["n_samples"]:
-            ax.axhline(r["rate"], color=color, ls="--", lw=1,
-                       label=f"   certified jams: {r['n_jams']} ({r['rate']:.3g} per unit strain)")
+        if e.get("jams"):
+            ax.axhline(e["jams_per_strain"], color=color, ls="--", lw=1,
+                       label=f"   certified jams: {e['jams']} ({e['jams_per_strain']:.3g} per "
+                             f"unit strain)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("σ reached at the peak")

@@ -364,14 +364,17 @@ def constant_phi_rates(recs: list) -> list[dict]:
 def _excursions(rs: list) -> dict:
     """The stress excursions of the samples ``rs`` pooled (those with a peak list: a table
     written before excursions were recorded has none): the strain they ran, and per level of
-    EXCURSION_LEVELS the excursions whose peak reached it, their count and per unit strain."""
+    EXCURSION_LEVELS the excursions whose peak reached it, their count and per unit strain;
+    and the certified jams of the same samples (excursions that did not come back)."""
     known = [r for r in rs if isinstance(r.get("excursion_peaks"), list)]
     strain = float(sum(r["strain_at_phi"] for r in known))
+    jams = sum(1 for r in known if r["shear_jam"] and r["constant_phi"])
     peaks = np.array([p for r in known for p in r["excursion_peaks"]], float)
     counts = [int(np.count_nonzero(peaks >= lv)) for lv in EXCURSION_LEVELS]
     return dict(n_samples=len(known), strain=strain, levels=list(EXCURSION_LEVELS),
                 counts=counts, per_strain=[c / strain if strain > 0 else math.nan
                                            for c in counts],
+                jams=jams, jams_per_strain=jams / strain if strain > 0 else math.nan,
                 on=EXCURSION_ON, off=EXCURSION_OFF, quiet=EXCURSION_QUIET)
 
 
