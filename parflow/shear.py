@@ -33,7 +33,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--restart", metavar="FILE", help="continue the run saved in FILE from its checkpoint "
                    "(with --output NEW: branch it, continuing a copy in NEW; FILE is left as it is, "
-                   "and --set may then change the protocol, e.g. --set protocol.leg.0.sigma_above=3e4)")
+                   "and --set may then change the protocol, e.g. --set protocol.leg.0.sigma_above=3e4; "
+                   "a run that is complete has its last leg reopened by such a change, e.g. "
+                   "--set protocol.leg.0.strain=7 shears it on to a leg strain of 7)")
     p.add_argument("--max-steps", type=int, help="override protocol.max_steps (e.g. to extend a restarted run)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="change a scene setting (repeatable), e.g. --set integrator.controller=PI; "
@@ -100,10 +102,15 @@ def _read(path):
                          f"(or it is not a scene file)") from None
 
 
-def _branch(src: str, dst: str, overwrite: bool) -> int:
-    """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint).
-    ``src`` was checked by ``_restart_scene``; it is only read.  ``dst`` appears complete
-    or not at all."""
+def _branch(src: str, dst: str, overwrite: bool, n_legs: int,
+            new_protocol: bool = False) -> tuple[int, bool]:
+    """Copy the run file ``src`` to ``dst`` (the branch then restarts from its checkpoint):
+    (the checkpoint's step, whether the last leg was reopened).  With ``new_protocol`` (the
+    branch's ``--set`` changes protocol keys) a run that had done all its ``n_legs`` legs has
+    its last leg reopened in the copy, its strain and steps so far taken from the time series
+    (:func:`_reopen_last_leg`): a longer leg or a stop stress not yet reached continues it,
+    one already met ends it again at once.  ``src`` was checked by ``_restart_scene``; it is
+    only read.  ``dst`` appears complete or not at all."""
     # (here, not at the top: see the module docstring)
     from .io import atomic_h5, check_output_path
     from .state import InputError
@@ -115,10 +122,36 @@ def _branch(src: str, dst: str, overwrite: bool) -> int:
         with atomic_h5(dst, source=src) as f:
             step = int(f["checkpoint"].attrs["step"])
             f.attrs["branched_from"] = f"{os.path.abspath(src)} at step {step}"
+            reopened = (new_protocol and int(f["checkpoint"].attrs["leg"]) >= n_legs
+                        and _reopen_last_leg(f, n_legs))
     except OSError as exc:
         raise InputError(f"cannot write the branch {dst!r}: {exc.strerror or exc}; "
                          f"{src!r} was not changed") from None
-    return step
+    return step, reopened
+
+
+def _reopen_last_leg(f, n_legs: int) -> bool:
+    """Set the checkpoint of the open run file ``f`` (all ``n_legs`` legs done) back into its
+    last leg: leg = n_legs - 1, with the strain and steps that leg ran (from the time series'
+    ``leg``, ``strain`` and ``step`` columns up to the checkpoint's row; the row before the
+    leg's first is where it began, the initial row for a first leg).  False, and nothing
+    changed, if the time series cannot say (no such columns, no row of that leg)."""
+    # (here, not at the top: see the module docstring)
+    import numpy as np
+    ck, ts = f["checkpoint"].attrs, f["timeseries"]
+    if n_legs < 1 or not all(k in ts for k in ("leg", "strain", "step")):
+        return False
+    n = int(ck["n_rows"])
+    rows = np.flatnonzero(ts["leg"][:n] == n_legs - 1)
+    if rows.size == 0:
+        return False
+    k0 = int(rows[0])
+    strain0 = float(ts["strain"][k0 - 1]) if k0 > 0 else 0.0
+    step0 = int(ts["step"][k0 - 1]) if k0 > 0 else 0
+    ck["leg"] = n_legs - 1
+    ck["leg_strain"] = max(0.0, float(ck["strain"]) - strain0)
+    ck["leg_steps"] = int(ck["step"]) - step0
+    return True
 
 
 def _restart_scene(path):
@@ -197,10 +230,13 @@ def _run(args, petsc_args, PETSc) -> int:
     if args.restart:
         path = args.restart
         if branch:       # continue a copy of the run in another file; FILE is left as it is
-            step = collective(comm, _branch, args.restart, args.output, args.overwrite)
+            new_protocol = any(x.strip().startswith("protocol.") for x in args.set or [])
+            step, reopened = collective(comm, _branch, args.restart, args.output, args.overwrite,
+                                        len(scene["protocol"]["leg"]), new_protocol)
             path = args.output
-            logging.getLogger("parflow").info("branching %s at its checkpoint (step %d) into %s",
-                                              args.restart, step, path)
+            logging.getLogger("parflow").info(
+                "branching %s at its checkpoint (step %d) into %s%s", args.restart, step, path,
+                " (it had done all its legs: its last leg reopened)" if reopened else "")
     else:
         path = scene["output"]["path"]
         if args.scene and _same_file(args.scene, path):

@@ -156,3 +156,50 @@ def test_branch_a_run_into_a_new_file(tmp_path):
     assert res.returncode == 2 and "names the file being restarted" in res.stderr
     res = shear("--restart", out, "--output", tmp_path / "c.h5", "--set", "protocol.leg.5.strain=1")
     assert res.returncode == 2 and "K in 0..1" in res.stderr and not (tmp_path / "c.h5").exists()
+
+
+CHAIN_STRAIN = """
+seed = 3
+[model]
+name = "chain"
+N = 50
+epsilon = 0.1
+mu = 0
+[[protocol.leg]]
+direction = "forward"
+strain = 0.002
+[output]
+path = "{path}"
+"""
+
+
+@pytest.mark.serial_only
+def test_branch_of_a_complete_run_reopens_its_last_leg(tmp_path):
+    """A complete run branched with a longer last leg shears on from its end to the new leg
+    strain, the rows before the branch point as they were; branched with its protocol
+    unchanged it is complete at once, with no step added."""
+    from test_cli import shear
+    out, longer, same = tmp_path / "r.h5", tmp_path / "longer.h5", tmp_path / "same.h5"
+    scene = tmp_path / "s.toml"
+    scene.write_text(CHAIN_STRAIN.format(path=out))
+    assert shear(scene, "--quiet", "--no-plots").returncode == 0
+    with h5py.File(out) as f:
+        assert f.attrs["status"] == "complete"
+        rows = f["timeseries/step"].shape[0]
+        strain0 = f["timeseries/strain"][()]
+        assert strain0[-1] == pytest.approx(0.002, rel=1e-12)
+    res = shear("--restart", out, "--output", longer, "--no-plots",
+                "--set", "protocol.leg.0.strain=0.003")   # it jams at ~0.0047
+    assert res.returncode == 0, res.stderr
+    assert "its last leg reopened" in res.stderr
+    with h5py.File(longer) as f:
+        assert f.attrs["status"] == "complete"
+        strain = f["timeseries/strain"][()]
+        assert strain.shape[0] > rows and np.array_equal(strain[:rows], strain0)
+        assert strain[-1] == pytest.approx(0.003, rel=1e-12)
+        assert np.all(f["timeseries/leg"][()] == 0)
+        assert int(f["checkpoint"].attrs["leg"]) == 1
+    res = shear("--restart", out, "--output", same, "--no-plots", "--quiet")
+    assert res.returncode == 0, res.stderr
+    with h5py.File(same) as f:
+        assert f.attrs["status"] == "complete" and f["timeseries/step"].shape[0] == rows
