@@ -383,6 +383,27 @@ def test_excursions_at_constant_phi_pooled(tmp_path):
     assert "suspension_excursions" not in [n for n, _ in _figures(res)]
 
 
+def test_a_branch_replaces_the_run_it_was_branched_from(tmp_path):
+    """A single run continued in a branch (its rows up to the branch point, then more) is
+    counted once, as the branch; read from a jam table as well."""
+    ramp = [0.820, 0.830, 0.840, 0.840]
+    single_run(tmp_path / "seed5.h5", "complete", ramp, [0.0, 0.5, 1.0, 4.0])
+    single_run(tmp_path / "seed5_on.h5", "interrupted", ramp + [0.840], [0.0, 0.5, 1.0, 4.0, 5.5])
+    with h5py.File(tmp_path / "seed5_on.h5", "a") as f:
+        f.attrs["branched_from"] = f"{tmp_path / 'seed5.h5'} at step 3"
+    single_run(tmp_path / "seed6.h5", "complete", ramp, [0.0, 0.5, 1.0, 2.0], seed=6)
+    recs = sj.read_sources([str(tmp_path)])
+    assert sorted(r["source"] for r in recs) == ["seed5_on", "seed6"]
+    assert {r["source"]: r["branched_from"] for r in recs} == {"seed5_on": "seed5", "seed6": ""}
+    (row,) = sj.constant_phi_rates(recs)
+    assert row["strain"] == pytest.approx(4.5 + 1.0)
+    table = sj.export([str(tmp_path)], str(tmp_path / "t.json"))
+    os.makedirs(tmp_path / "parent")
+    os.replace(tmp_path / "seed5.h5", tmp_path / "parent" / "seed5.h5")
+    recs = sj.read_sources([str(tmp_path / "parent"), table])
+    assert sorted(r["source"] for r in recs) == ["seed5_on", "seed6"]
+
+
 def test_jam_rate_figure():
     """Jams per unit strain against N at one phi: a size with jams is a point with its
     Poisson interval, a size with none its upper bound (a triangle pointing down); a phi

@@ -79,7 +79,7 @@ RECORD_KEYS = ("source", "sample", "seed", "N", "compress_rate", "compress_to", 
 # keys a table may lack (written before they existed): read as NaN -- except strain_at_phi of
 # a sample that was not compressed, which is then its last gamma (every suspension scene
 # such a table came from ran one forward leg)
-OPTIONAL_KEYS = ("strain_at_phi", "excursion_peaks")
+OPTIONAL_KEYS = ("strain_at_phi", "excursion_peaks", "branched_from")
 RATE_CI = 0.95                 # the coverage of the jam rate's interval (exact Poisson)
 # a stress excursion: sigma rises to >= EXCURSION_ON, and it is over when sigma has stayed
 # below EXCURSION_OFF for EXCURSION_QUIET strain (flowing at phi = 0.840, N = 4096: sigma's
@@ -168,7 +168,14 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
                 tau_b=float(jam.get("tau_b", nan)) if jammed else nan, tau_b_shear=tbs,
                 strain_budget=float(jam.get("strain_budget", nan)) if jammed else nan,
                 git_commit=str(attrs.get("git_commit", "")), strain_at_phi=at_phi,
-                excursion_peaks=peaks)
+                excursion_peaks=peaks, branched_from=_branch_source(attrs))
+
+
+def _branch_source(attrs) -> str:
+    """The source name (file name without .h5) of the run a branch was copied from
+    (``branched_from``: "PATH at step N"), or "" for a run that is not a branch."""
+    b = str(attrs.get("branched_from", ""))
+    return os.path.splitext(os.path.basename(b.rsplit(" at step ", 1)[0]))[0] if b else ""
 
 
 def read_folder(folder: str) -> list[dict]:
@@ -227,7 +234,9 @@ def read_runs(paths) -> list[dict]:
 def read_sources(paths) -> list[dict]:
     """Every record of the ensemble folders, jam tables and single run files among ``paths``
     (see :func:`find_sources`, :func:`read_runs`); a sample found twice (the same source and
-    index) counts once, as read from its run file rather than from a table."""
+    index) counts once, as read from its run file rather than from a table; a single run
+    that another one read was branched from (``--restart FILE --output NEW``: NEW holds
+    FILE's rows up to the branch and goes on) is left out for the branch."""
     folders, tables = find_sources(paths, ".json")
     recs, seen = [], set()
     for r in [r for f in folders for r in read_folder(f)] + read_runs(paths) + \
@@ -236,7 +245,9 @@ def read_sources(paths) -> list[dict]:
         if key not in seen:
             seen.add(key)
             recs.append(r)
-    return recs
+    parents = {r["branched_from"] for r in recs if r["sample"] < 0
+               and isinstance(r.get("branched_from"), str) and r["branched_from"]}
+    return [r for r in recs if not (r["sample"] < 0 and r["source"] in parents)]
 
 
 def export(paths, out: str) -> str:
