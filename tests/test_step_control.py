@@ -158,31 +158,16 @@ def test_branch_a_run_into_a_new_file(tmp_path):
     assert res.returncode == 2 and "K in 0..1" in res.stderr and not (tmp_path / "c.h5").exists()
 
 
-CHAIN_STRAIN = """
-seed = 3
-[model]
-name = "chain"
-N = 50
-epsilon = 0.1
-mu = 0
-[[protocol.leg]]
-direction = "forward"
-strain = 0.002
-[output]
-path = "{path}"
-"""
-
-
 @pytest.mark.serial_only
 def test_branch_of_a_complete_run_reopens_its_last_leg(tmp_path):
     """A complete run branched with a longer last leg shears on from its end to the new leg
     strain, the rows before the branch point as they were; branched with its protocol
     unchanged it is complete at once, with no step added."""
-    from test_cli import shear
+    from test_cli import GOOD, shear
     out, longer, same = tmp_path / "r.h5", tmp_path / "longer.h5", tmp_path / "same.h5"
     scene = tmp_path / "s.toml"
-    scene.write_text(CHAIN_STRAIN.format(path=out))
-    assert shear(scene, "--quiet", "--no-plots").returncode == 0
+    scene.write_text(GOOD.replace("V2_above = 100.0", "strain = 0.002"))
+    assert shear(scene, "--quiet", "--no-plots", "--output", out).returncode == 0
     with h5py.File(out) as f:
         assert f.attrs["status"] == "complete"
         rows = f["timeseries/step"].shape[0]
