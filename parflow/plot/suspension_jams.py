@@ -184,7 +184,8 @@ def excursion_figure(res: dict) -> Figure:
     per (N, phi); the same samples' certified jams per unit strain as a dashed line."""
     fig = new_figure(6.4, 4.6)
     ax = fig.add_subplot(1, 1, 1)
-    for k, r in enumerate(sorted(_excursion_rows(res), key=lambda r: (r["phi"], r["N"]))):
+    rows = sorted(_excursion_rows(res), key=lambda r: (r["phi"], r["N"]))
+    for k, r in enumerate(rows):
         e, color = r["excursions"], f"C{k}"
         x = np.array(e["levels"], float)
         y = np.array(e["per_strain"], float)
@@ -202,10 +203,9 @@ def excursion_figure(res: dict) -> Figure:
     ax.set_ylabel("excursions per unit strain")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="lower left")
-    rows = _excursion_rows(res)
-    e = rows[0]["excursions"] if rows else dict(on=0, off=0)
+    e = rows[0]["excursions"] if rows else dict(on=0, off=0, quiet=0)
     ax.set_title(f"Stress excursions of flowing suspensions at constant φ: σ ≥ {e['on']:g} "
-                 f"until below {e['off']:g} for {e.get('quiet', 0):g} strain\n(dashed: the "
+                 f"until below {e['off']:g} for {e['quiet']:g} strain\n(dashed: the "
                  f"certified jams, excursions that do not come back)", fontsize=8.5)
     return fig
 

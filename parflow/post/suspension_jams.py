@@ -442,7 +442,7 @@ def format_rates(rates: list) -> list[str]:
         e = t.get("excursions")
         if e and e["n_samples"] and e["strain"] > 0:
             out.append(f"{'':27s}stress excursions (sigma >= {e['on']:g} until below "
-                       f"{e['off']:g} for {e.get('quiet', 0):g} strain) of {e['n_samples']} "
+                       f"{e['off']:g} for {e['quiet']:g} strain) of {e['n_samples']} "
                        f"samples in {e['strain']:.2f} strain, "
                        f"per unit strain reaching "
                        + ", ".join(f"{lv:.0e}: {x:.3g}" for lv, x in
