@@ -512,13 +512,19 @@ def rate_exposure(run) -> tuple[float, bool]:
     return x, False
 
 
+def final_phi_row(phi, compress_to: float) -> int | None:
+    """The first row where ``phi`` reached ``compress_to`` (None: it never got there)."""
+    at = np.flatnonzero(np.asarray(phi, float) >= compress_to)
+    return int(at[0]) if at.size else None
+
+
 def strain_at_final_phi(strain, phi, compress_to: float) -> float:
     """The strain run from the row where ``phi`` first reached ``compress_to`` to the last
     row (the exposure of a sample compressed while it flowed); NaN if it never got there."""
-    at = np.flatnonzero(np.asarray(phi, float) >= compress_to)
-    if not at.size or not len(strain):
+    at = final_phi_row(phi, compress_to)
+    if at is None or not len(strain):
         return math.nan
-    return float(strain[-1] - strain[at[0]])
+    return float(strain[-1] - strain[at])
 
 
 def summarise(folder: str) -> dict:

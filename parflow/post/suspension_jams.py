@@ -64,7 +64,8 @@ import tomllib
 import numpy as np
 
 from ..io import RunFile, atomic_json
-from .ensemble import find_sources, mean_sem, read_table, sample_files, strain_at_final_phi
+from .ensemble import (final_phi_row, find_sources, mean_sem, read_table, sample_files,
+                       strain_at_final_phi)
 from .network_across_ensembles import _jsonable, missing_path, print_and_save
 
 JAMS_KIND = "parflow suspension jams"
@@ -149,14 +150,14 @@ def jam_record(path: str, source: str = "", sample: int = -1) -> dict:
     strain = ts.get("strain", ts.get("gamma", []))
     if rate > 0:            # exposed from where phi reached compress_to (no phi column: unknown)
         at_phi = strain_at_final_phi(strain, phi_ts, to) if phi_ts is not None else nan
-        first = np.flatnonzero(np.asarray(phi_ts, float) >= to) if phi_ts is not None else []
+        first = final_phi_row(phi_ts, to) if phi_ts is not None else None
     else:
         at_phi = float(strain[-1]) if len(strain) else nan
-        first = [0]
+        first = 0
     sig = ts.get("sigma")
     # the excursions over the same rows as the exposure (None: no sigma column, or never there)
-    peaks = (excursion_peaks(sig[first[0]:], np.asarray(strain, float)[first[0]:]).tolist()
-             if sig is not None and len(first) and len(strain) == len(sig) else None)
+    peaks = (excursion_peaks(sig[first:], np.asarray(strain, float)[first:]).tolist()
+             if sig is not None and first is not None and len(strain) == len(sig) else None)
     return dict(source=source, sample=int(sample), seed=int(attrs.get("sample_seed", -1)),
                 N=int(model.get("N", 0)), compress_rate=rate, compress_to=to, status=status,
                 shear_jam=bool(jammed and tbs < 0),
