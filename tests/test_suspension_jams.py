@@ -450,3 +450,17 @@ def test_command_line_on_run_files(tmp_path):
                          capture_output=True, text=True, cwd=ROOT, timeout=guard(120))
     assert res.returncode == 2 and "not a readable suspension run file" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_exposure_starts_where_phi_reached_compress_to():
+    """The exposure at the final phi and the excursions are counted from the first row where
+    phi reached compress_to (post.ensemble.final_phi_row); a run that never got there has
+    neither."""
+    from parflow.post.ensemble import final_phi_row, strain_at_final_phi
+    phi = [0.82, 0.83, 0.84, 0.84, 0.84]
+    strain = [0.0, 0.5, 1.0, 1.7, 2.5]
+    assert final_phi_row(phi, 0.84) == 2
+    assert strain_at_final_phi(strain, phi, 0.84) == pytest.approx(1.5)
+    assert final_phi_row(phi, 0.845) is None
+    assert math.isnan(strain_at_final_phi(strain, phi, 0.845))
+    assert math.isnan(strain_at_final_phi([], phi, 0.84))
