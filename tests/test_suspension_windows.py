@@ -129,3 +129,36 @@ def test_command_line(tmp_path):
         p = cli(*args)
         assert p.returncode == 2, (args, p.stdout, p.stderr)
         assert says in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def two_runs(tmp_path):
+    paths = []
+    for k in range(2):
+        sigma, dg, phi, _ = series(seed=20 + k)
+        paths.append(run_file(tmp_path / f"f{k}.h5", sigma, dg, phi))
+    return paths
+
+
+def test_figure(tmp_path):
+    from parflow.plot.suspension_windows import windows_figure
+    res = sw.analyse(two_runs(tmp_path))
+    fig = windows_figure(res)
+    top, bottom = fig.axes
+    assert len(top.containers) == 2 and len(bottom.containers) == 2     # one per run
+    line = top.containers[0].lines[0]
+    assert np.allclose(line.get_ydata(), [w["sigma"][0] for w in res["runs"][0]["windows"]])
+    line = bottom.containers[1].lines[0]
+    assert np.allclose(line.get_ydata(), [w["mu"][0] for w in res["runs"][1]["windows"]])
+
+
+@pytest.mark.serial_only
+def test_figure_command_line(tmp_path):
+    paths, out = two_runs(tmp_path), tmp_path / "figs"
+    p = subprocess.run([sys.executable, "-m", "parflow.plot.suspension_windows", *paths,
+                        "--out", str(out)], capture_output=True, text=True, timeout=guard(120))
+    assert p.returncode == 0, p.stderr
+    assert (out / "suspension_windows.png").stat().st_size > 0
+    p = subprocess.run([sys.executable, "-m", "parflow.plot.suspension_windows",
+                        str(tmp_path / "none.h5")], capture_output=True, text=True,
+                       timeout=guard(120))
+    assert p.returncode == 2 and "no such file" in p.stderr

@@ -28,7 +28,6 @@ import sys
 
 import numpy as np
 
-from ..errors import InputError
 from .ensemble import final_phi_row, mean_sem
 from .network_across_ensembles import missing_path, print_and_save
 from .runs import load
@@ -180,7 +179,7 @@ def main(argv=None) -> int:
         return 2
     try:
         res = analyse(args.paths, args.width, args.from_strain, args.to_strain)
-    except (ValueError, InputError) as e:
+    except ValueError as e:                 # InputError (not a run file) is one too
         print(f"{name}: {e}", file=sys.stderr)
         return 2
     print_and_save(res, format_table, args.json)
