@@ -5,20 +5,18 @@
   each run, with their block errors, at the window's centre in strain; one colour per run,
   its whole-range mean as a dotted line.  A stationary run scatters about its line.
 
-``python -m parflow.plot.suspension_windows RUN.h5... [--out DIR]`` (windows of 1 strain from
-where each run reached its final phi).
+``python -m parflow.plot.suspension_windows RUN.h5... [--width W] [--from-strain X]
+[--to-strain Y] [--out DIR]`` (the windows as for ``python -m parflow.post.suspension_windows``).
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..post.network_across_ensembles import missing_path
-from ..post.suspension_windows import analyse, format_table
+from ..post.suspension_windows import command_line, format_table
 from .base import new_figure, save_figure
 
 
@@ -53,22 +51,17 @@ def _figures(res: dict) -> list:
     return [("suspension_windows", windows_figure(res))]
 
 
-def main(argv=None) -> int:
-    name = "suspension_windows"
-    ap = argparse.ArgumentParser(prog=f"python -m parflow.plot.{name}",
-                                 description="sigma and mu of suspension runs in windows of "
-                                 "equal strain: are they stationary?")
-    ap.add_argument("paths", nargs="+", metavar="RUN", help="suspension run files (.h5)")
-    ap.add_argument("--width", type=float, default=1.0, help="strain per window (default 1)")
+def _output_arguments(ap) -> None:
     ap.add_argument("--out", default=None, help="output folder (default: the first RUN's)")
     ap.add_argument("--format", default="png", choices=("png", "pdf", "svg"))
-    args = ap.parse_args(argv)
-    if missing_path(args.paths, name):
-        return 2
-    try:
-        res = analyse(args.paths, args.width)
-    except ValueError as e:                 # InputError (not a run file) is one too
-        print(f"{name}: {e}", file=sys.stderr)
+
+
+def main(argv=None) -> int:
+    name = "suspension_windows"
+    args, res = command_line(argv, f"python -m parflow.plot.{name}",
+                             "sigma and mu of suspension runs in windows of equal strain: are "
+                             "they stationary?", _output_arguments)
+    if res is None:
         return 2
     out = args.out or os.path.dirname(args.paths[0]) or "."
     try:

@@ -161,11 +161,12 @@ def format_table(res: dict) -> list[str]:
     return lines
 
 
-def main(argv=None) -> int:
-    name = "suspension_windows"
-    ap = argparse.ArgumentParser(prog=f"python -m parflow.post.{name}",
-                                 description="A suspension run's averages in windows of equal "
-                                 "strain, and their drift: is it stationary?")
+def command_line(argv, prog: str, description: str, more=None):
+    """(args, :func:`analyse` of them) for a command line of runs and windows, ``more(ap)``
+    adding its own arguments (shared with ``plot.suspension_windows``); (args, None) after
+    one line on stderr for a missing file, one that is not a suspension run or a bad range
+    (the command lines then exit 2)."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("paths", nargs="+", metavar="RUN", help="suspension run files (.h5)")
     ap.add_argument("--width", type=float, default=1.0, help="strain per window (default 1)")
     ap.add_argument("--from-strain", type=float, default=None,
@@ -173,14 +174,26 @@ def main(argv=None) -> int:
                     "phi)")
     ap.add_argument("--to-strain", type=float, default=None,
                     help="end of the last window (default: the end of the run)")
-    ap.add_argument("--json", metavar="OUT", help="write the result as JSON")
+    if more is not None:
+        more(ap)
     args = ap.parse_args(argv)
+    name = prog.rsplit(".", 1)[-1]
     if missing_path(args.paths, name):
-        return 2
+        return args, None
     try:
-        res = analyse(args.paths, args.width, args.from_strain, args.to_strain)
+        return args, analyse(args.paths, args.width, args.from_strain, args.to_strain)
     except ValueError as e:                 # InputError (not a run file) is one too
         print(f"{name}: {e}", file=sys.stderr)
+        return args, None
+
+
+def main(argv=None) -> int:
+    args, res = command_line(
+        argv, "python -m parflow.post.suspension_windows",
+        "A suspension run's averages in windows of equal strain, and their drift: is it "
+        "stationary?",
+        lambda ap: ap.add_argument("--json", metavar="OUT", help="write the result as JSON"))
+    if res is None:
         return 2
     print_and_save(res, format_table, args.json)
     return 0
