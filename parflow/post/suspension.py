@@ -28,15 +28,20 @@ def _from_strain(run) -> float:
     return 0.5 * float(strain[-1]) if strain is not None and len(strain) else 0.0
 
 
-def window_rows(run) -> np.ndarray:
-    """Boolean mask of the rows in the statistics window (forward steps past the transient)."""
-    ts = run.ts
-    m = np.asarray(ts["strain"]) >= _from_strain(run)
+def forward_steps(ts) -> np.ndarray:
+    """Boolean mask of the rows of the time series ``ts`` that are forward steps (step > 0,
+    direction > 0 where those columns exist)."""
+    m = np.ones(len(ts["strain"]), bool)
     if "step" in ts:
         m &= np.asarray(ts["step"]) > 0
     if "direction" in ts:
         m &= np.asarray(ts["direction"]) > 0
     return m
+
+
+def window_rows(run) -> np.ndarray:
+    """Boolean mask of the rows in the statistics window (forward steps past the transient)."""
+    return (np.asarray(run.ts["strain"]) >= _from_strain(run)) & forward_steps(run.ts)
 
 
 def window_instants(run) -> list[dict]:

@@ -31,18 +31,9 @@ import numpy as np
 from .ensemble import final_phi_row, mean_sem
 from .network_across_ensembles import missing_path, print_and_save
 from .runs import load
-from .suspension import _mean_err
+from .suspension import _mean_err, forward_steps
 
 QUANTITIES = ("sigma", "pressure", "mu", "z2")
-
-
-def _forward(ts) -> np.ndarray:
-    m = np.ones(len(ts["strain"]), bool)
-    if "step" in ts:
-        m &= np.asarray(ts["step"]) > 0
-    if "direction" in ts:
-        m &= np.asarray(ts["direction"]) > 0
-    return m
 
 
 def start_strain(ts) -> float:
@@ -95,7 +86,7 @@ def run_windows(path: str, width: float = 1.0, from_strain: float | None = None,
     strain = np.asarray(ts["strain"], float)
     lo = start_strain(ts) if from_strain is None else float(from_strain)
     hi = float(strain[-1]) if to_strain is None else min(float(to_strain), float(strain[-1]))
-    fwd = _forward(ts)
+    fwd = forward_steps(ts)
     inside = fwd & (strain > lo) & (strain <= hi)
     if not inside.any():
         raise ValueError(f"{path}: no forward steps between strain {lo:g} and {hi:g} (the run "
