@@ -379,3 +379,10 @@ def hms(t: float) -> str:
         return "--:--:--"
     t = int(t)
     return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"
+
+
+def pace(steps_per_second: float) -> str:
+    """The progress line's speed: steps a second, or seconds a step when slower than one a
+    second (a large network's steps take seconds: "0.0 steps/s" would say nothing)."""
+    r = steps_per_second
+    return f"{r:.1f} steps/s" if r >= 1.0 or not r > 0.0 else f"{1.0 / r:.1f} s/step"

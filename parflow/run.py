@@ -29,7 +29,7 @@ from .dynamics.heun import Jammed
 from .io import RunWriter, WriteError, collective_write
 from .models import get_model
 from .protocol import (Clock, Elapsed, Every, Leg, WallEvery, analyses_enabled,
-                       analysis_trigger, hms)
+                       analysis_trigger, hms, pace)
 from .provenance import git_commit, versions
 from .algebra.solvers import SolveError, all_options, unused_options
 from .state import STOPS, State, Terminated
@@ -201,11 +201,11 @@ class Run:
             frac = leg.fraction(obs, leg_obs0, clock.leg_strain, clock.leg_steps)
             rate = (clock.step - leg_step0) / max(now - leg_t0, 1e-9)
             log.info("step %7d  leg %d/%d %s  gamma=%+.9e  sigma=%.3e  V2=%.3e  dgamma=%.2e%s%s"
-                     "  %.1f steps/s  leg ETA %s", clock.step, clock.leg + 1, len(legs),
+                     "  %s  leg ETA %s", clock.step, clock.leg + 1, len(legs),
                      "fwd" if leg.direction > 0 else "rev", eng.gamma, obs["sigma"], obs["V2"],
                      abs(dgamma), f"  phi={obs['phi']:.5f}" if "phi" in obs else "",
                      f"  omega_min={wom_last:.3e}" if np.isfinite(wom_last) else "",
-                     rate, hms(eta.update(now, frac, clock.step)))
+                     pace(rate), hms(eta.update(now, frac, clock.step)))
 
         def failed(exc):
             """The run stops on ``exc``: rank 0 writes the status, the reason, a checkpoint

@@ -289,3 +289,12 @@ def test_eta_window_spans_enough_steps():
     vals = [short.update(15.0 * k, f, k) for k, f in enumerate(np.cumsum(
         [0.003 if k % 2 else -0.001 for k in range(1, 200)]), start=1)]
     assert np.nanmax(vals[100:]) / np.nanmin(vals[100:]) > 2
+
+
+def test_progress_pace_reads_in_seconds_a_step_when_slow():
+    """The progress line's speed: steps a second from one a second up, seconds a step below
+    (an N = 10^6 network step takes ~20 s: "0.0 steps/s" said nothing)."""
+    from parflow.protocol import pace
+    assert pace(4.56) == "4.6 steps/s" and pace(1.0) == "1.0 steps/s"
+    assert pace(0.05) == "20.0 s/step" and pace(0.5) == "2.0 s/step"
+    assert pace(0.0) == "0.0 steps/s"
