@@ -9,7 +9,7 @@ import pytest
 from petsc4py import PETSc
 
 from parflow.dynamics.bonded import BondedSystem
-from parflow.dynamics.krylov import gmres
+from parflow.dynamics.krylov import gmres, shifted_space
 from parflow.dynamics.ros2 import GAMMA, GROWTH_MAX
 from parflow.scene import load_scene
 from systems import random_bonded_state, run_scene
@@ -89,6 +89,35 @@ def test_gmres_from_another_systems_krylov_space():
     inside = gmres(op, 3.0 * b1, 1e-8, 200, space=first.space)       # in the space already
     assert inside.converged and inside.iterations == 0
     np.testing.assert_allclose(inside.x, 3.0 * first.x, rtol=0, atol=1e-9 * np.linalg.norm(first.x))
+
+
+def test_gmres_seeded_with_a_shifted_krylov_space():
+    """ROS2's stage 1 retried at a shorter step: W' = I - c' L from the Arnoldi relation of
+    W = I - c L (same b) rescaled (krylov.shifted_space) gives a fresh GMRES's solution,
+    residual and Ritz values with only the products beyond the given columns."""
+    rng = np.random.default_rng(2)
+    n = 150
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    L = -(Q * np.geomspace(1.0, 1e3, n)) @ Q.T + np.triu(rng.standard_normal((n, n)), 1) / n
+    b = rng.standard_normal(n)
+    W = lambda c: (lambda x: x - c * (L @ x))                          # noqa: E731
+    c = 0.05
+    first = gmres(W(c), b, 1e-8, 120, keep_space=True)
+    assert first.converged and first.iterations > 10
+    for t in (0.3, 0.9, 1.5):                 # shorter (a rejection), and longer
+        fresh = gmres(W(t * c), b, 1e-8, 120)
+        seeded = gmres(W(t * c), b, 1e-8, 120, seed=shifted_space(first.space, t), keep_space=True)
+        assert seeded.converged
+        assert seeded.iterations == max(fresh.iterations - first.iterations, 0)
+        np.testing.assert_allclose(seeded.x, fresh.x, rtol=0, atol=1e-9 * np.linalg.norm(fresh.x))
+        assert seeded.residual == pytest.approx(fresh.residual, rel=1e-6)
+        np.testing.assert_allclose(np.sort_complex(seeded.ritz), np.sort_complex(fresh.ritz),
+                                   rtol=1e-5)            # (MGS's round-off after ~60 columns)
+        Qs, Hs = seeded.space                 # a valid Arnoldi relation of W(t c)
+        np.testing.assert_allclose(Qs[:-1] @ (np.eye(n) - t * c * L).T, Hs.T @ Qs,
+                                   atol=1e-9 * (1 + t * c * np.abs(L).max()))
+        if t < 1:
+            assert seeded.iterations == 0     # a shorter step: converged within the old space
 
 
 CHAIN = """

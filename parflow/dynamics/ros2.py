@@ -20,7 +20,9 @@ One step of size h = direction * dg from s with F0 = F(s) (N factorised at s):
 ROS2 is of order 2 for any W (a W-method), so J need not be exact: each stage equation is
 solved by GMRES (dynamics.krylov) to the relative residual ``krylov_rtol``, each product J u
 one solve with the factor at s (with ``krylov_recycle`` the second stage starts from the
-first stage's Krylov space: dynamics.krylov).  The stage force F(s + h k1) is a PCG on that factor to
+first stage's Krylov space: dynamics.krylov; a trial step rejected for its growth or its
+error leaves its stage-1 Krylov space to the next, shorter trial, whose W differs only by
+the shift: krylov.shifted_space).  The stage force F(s + h k1) is a PCG on that factor to
 ``stage_rtol`` (STAGE_RTOL if the key is 0: the stage force enters the solution directly);
 should the PCG fall back to a factorisation there, the factor of stage 1 is loaded again
 for the second stage (W must be the same in both).  The end of the step s + h (3/2 k1 + 1/2
@@ -56,7 +58,7 @@ import numpy as np
 
 from ..algebra.solvers import SingularOperator
 from .heun import INTEGRATORS, Heun, Stall, StepResult, vnorm
-from .krylov import gmres
+from .krylov import gmres, shifted_space
 
 GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
 # The stage force by PCG on the step's factor when integrator.stage_rtol = 0: its error
@@ -103,12 +105,13 @@ class ROS2(Heun):
         dg = super().bound(F, dg)
         return min(dg, 0.9 * GROWTH_MAX / self.rate_plus) if self.rate_plus > 0 else dg
 
-    def _stage(self, W, rhs: np.ndarray, shape, space=None, keep_space=False):
-        """GMRES on W x = rhs (from the Krylov ``space`` of the same W, if given):
-        (x, Ritz values, its own Krylov space if ``keep_space``), or (None, None, None) if it
-        did not converge."""
+    def _stage(self, W, rhs: np.ndarray, shape, space=None, keep_space=False, seed=None):
+        """GMRES on W x = rhs (from the Krylov ``space`` of the same W, if given; ``seed``:
+        the Arnoldi relation of this W from this rhs, ``krylov.gmres``): (x, Ritz values,
+        its own Krylov space if ``keep_space``), or (None, None, None) if it did not
+        converge."""
         res = gmres(W, rhs.ravel(), self.c.krylov_rtol, KRYLOV_MAX_IT, space=space,
-                    keep_space=keep_space)
+                    keep_space=keep_space, seed=seed)
         self.system.krylov_iterations += res.iterations
         if not res.converged:
             self.krylov_failed += 1
@@ -158,6 +161,7 @@ class ROS2(Heun):
         stall, dg_first = Stall(), dg
         stage_rtol = c.stage_rtol if c.stage_rtol > 0 else STAGE_RTOL
         lin = None
+        k1_space = None         # a rejected trial's stage-1 Krylov space and its h (below)
         w_n = self._w_factor(F0)
         while True:
             dg = self.trial(F0, dg, dg_cap, gamma, rejected, stall)
@@ -165,10 +169,16 @@ class ROS2(Heun):
             if sysm.ops.loaded_n is not w_n:        # a trial step factorised elsewhere
                 sysm.load(w_n)
             if lin is None:
-                lin = sysm.linearised(F0)
+                lin, k1_space = sysm.linearised(F0), None
             W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
+            # stage 1 after a rejection: the same J and right-hand side, only h changed, and
+            # a Krylov space of J does not depend on the shift -- the rejected trial's
+            # Arnoldi relation, rescaled, is this W's (krylov.shifted_space): its products
+            # are not made again (a growth rejection at N = 10^6 cost ~6 s of solves)
+            seed = shifted_space(k1_space[0], h / k1_space[1]) if k1_space is not None else None
+            k1_space = None
             try:
-                k1, ritz, space = self._stage(W, F0.ds, s.shape, keep_space=c.krylov_recycle)
+                k1, ritz, space = self._stage(W, F0.ds, s.shape, keep_space=True, seed=seed)
                 if k1 is None:
                     raise SingularOperator("ROS2 stage 1: GMRES did not converge")
                 # growth: mu = 1 - g h lambda < 1 (see the module)
@@ -178,13 +188,14 @@ class ROS2(Heun):
                     rejected += 1
                     self.rejections["growth"] += 1
                     dg *= 0.9 * GROWTH_MAX / hl
+                    k1_space = (space, h)
                     continue
                 F1 = sysm.evaluate(s + h * k1, gamma + h, what="ROS2 stage", rtol=stage_rtol,
                                    guess=F0.tau, max_it=STAGE_MAX_IT, intermediate=True)
                 if sysm.ops.loaded_n is not w_n:    # the stage's PCG fell back: W as in stage 1
                     sysm.load(w_n)
-                k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape, space)
-                space = None                        # m vectors of the state's size: not kept
+                k2, _, _ = self._stage(W, F1.ds - 2.0 * k1, s.shape,
+                                       space if c.krylov_recycle else None)
                 if k2 is None:
                     raise SingularOperator("ROS2 stage 2: GMRES did not converge")
             except SingularOperator:
@@ -205,7 +216,9 @@ class ROS2(Heun):
                     w_n = F0.n
                     continue
                 dg *= max(0.2, 0.9 * c.tol / err) if np.isfinite(err) else 0.25
+                k1_space = (space, h)
                 continue
+            space = None                            # m vectors of the state's size: not kept
             try:
                 s_new, it, lerr, F = self._finish(s + h * (1.5 * k1 + 0.5 * k2), gamma + h)
             except SingularOperator:
