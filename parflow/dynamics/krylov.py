@@ -4,8 +4,9 @@ Every rank holds the whole vector and applies the same operator (whose solves wi
 collective), so every rank computes the same numbers in the same order: the iteration is
 deterministic and rank-count independent to the round-off of the operator.
 
-    gmres(A, b, rtol, max_it, space=None, keep_space=False)
+    gmres(A, b, rtol, max_it, space=None, keep_space=False, seed=None)
         -> KrylovResult(x, iterations, residual, converged, ritz, space)
+    shifted_space(space, t) -> the Arnoldi relation of I - t (I - A), a ``seed``
 
 Arnoldi with modified Gram-Schmidt, Givens rotations on the Hessenberg matrix, no restart
 (the stage equations converge in tens of iterations), x0 = 0; converged when the
@@ -20,6 +21,11 @@ minimising |b - Q H y| (no product with A), then GMRES on the residual to the sa
 |b - A x| <= rtol |b|; ``iterations`` counts the new products only, and ``keep_space``
 returns the residual system's space (of the same A).  ROS2's two stage equations share W
 (integrator.krylov_recycle).
+
+The same system with a shifted operator -- ROS2's stage 1 retried at a shorter step after a
+rejection, W' = I - c' L against W = I - c L -- has the same Krylov space: ``seed=`` the
+rescaled Arnoldi relation of the first (``shifted_space``) stands for the first iterations
+of a fresh GMRES, which goes on with products only beyond them.
 """
 from __future__ import annotations
 
