@@ -169,7 +169,7 @@ class ROS2(Heun):
             if sysm.ops.loaded_n is not w_n:        # a trial step factorised elsewhere
                 sysm.load(w_n)
             if lin is None:
-                lin, k1_space = sysm.linearised(F0), None
+                lin = sysm.linearised(F0)
             W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
             # stage 1 after a rejection: the same J and right-hand side, only h changed, and
             # a Krylov space of J does not depend on the shift -- the rejected trial's
