@@ -34,6 +34,7 @@ force is a fresh factorisation: one factorisation per accepted step (docs/solver
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,18 @@ import numpy as np
 from ..algebra.solvers import SingularOperator
 from ..schema import POSITIVE, key
 from ..state import InputError
+
+# the two L-stable choices of ROS2's g (dynamics.ros2); a scene's value is snapped to the
+# nearer one within 1e-6 (ros2_g)
+ROS2_GAMMAS = (1.0 + 1.0 / math.sqrt(2.0), 1.0 - 1.0 / math.sqrt(2.0))
+
+
+def ros2_g(v: float) -> float | None:
+    """The L-stable g that ``v`` stands for (within 1e-6), or None."""
+    for g in ROS2_GAMMAS:
+        if isinstance(v, (int, float)) and abs(v - g) <= 1e-6:
+            return g
+    return None
 
 CONTROLLERS = ("I", "PI")
 INTEGRATORS: dict = {}      # filled at the end of the module
@@ -98,6 +111,11 @@ class StepControl:
     krylov_recycle: bool = key(False, None, "true or false",
                                "ros2: the second stage equation starts from the first one's "
                                "Krylov space (the same W): fewer GMRES iterations")
+    ros2_gamma: float = key(ROS2_GAMMAS[0], lambda v: ros2_g(v) is not None,
+                            "1.7071068 (1 + 1/sqrt(2)) or 0.2928932 (1 - 1/sqrt(2)): the "
+                            "L-stable ROS2",
+                            "ros2: the parameter g of W = I - g h J; 1 - 1/sqrt(2) moves R(z)'s "
+                            "pole from z = 0.59 to 3.41 (longer steps where a mode grows)")
 
     def validate(self):
         for name in ("tol", "max_displacement", "max_dgamma", "min_dgamma", "initial_dgamma",

@@ -8,7 +8,8 @@ while the flow itself changes on strains ~ 1 / (0.1 sigma).  An explicit step is
 the first (Heun: dg |lambda| <= 2), an L-stable one only by the second.
 
 One step of size h = direction * dg from s with F0 = F(s) (N factorised at s):
-    W   = I - g h J,   g = 1 + 1/sqrt(2)        (J at s: BondedSystem.linearised)
+    W   = I - g h J,   g = 1 + 1/sqrt(2)        (J at s: BondedSystem.linearised;
+                                                  integrator.ros2_gamma: or 1 - 1/sqrt(2))
     W k1 = F0
     W k2 = F(s + h k1, gamma + h) - 2 k1
     s'  = s + h (3/2 k1 + 1/2 k2),  projected on the rod lengths (with the factor at s)
@@ -46,6 +47,14 @@ not see the growth; checkpointed).  Toward jamming
 lambda_+ is small (8.7e4 at sigma = 1e6 against -1.3e7 for the stiff modes, N = 4 096):
 the bound does not bite; on a reversed leg it makes ROS2 as slow as an explicit step, and
 Heun is the cheaper choice there (per-leg integrator keys).
+The other L-stable g, 1 - 1/sqrt(2) (``ros2_gamma``; R(z) = (1 + (sqrt(2) - 1) z) /
+(1 - g z)^2, order 2 as well): R's pole moves to z = 3.41, R follows e^z to 2.4 % up to
+z = growth_limit(g) ~ 0.8 (4x GROWTH_MAX), the linear error constant is 34x smaller, and
+W = I - g h J is better conditioned for the stiff modes (fewer GMRES iterations); the stiff
+modes are damped with R ~ -4.8/z (a sign change a step) instead of R ~ -0.83/z.  Its error
+estimate, against the linearly implicit Euler step of the same g, is (2g - 1) h^2 J F / 2 for
+a slow flow, 5.8x smaller than Verwer's: the same accuracy needs a ~5x smaller tol
+(docs/solvers.md).
 Rod lengths and the sigma identity: as every bonded step.
 Cost of a step: one factorisation, the stage PCG, 2 x (GMRES iterations) solves and the
 projection's solves; measured in docs/benchmarks.md ("Integrators on a network").
@@ -57,7 +66,7 @@ import math
 import numpy as np
 
 from ..algebra.solvers import SingularOperator
-from .heun import INTEGRATORS, Heun, Stall, StepResult, vnorm
+from .heun import INTEGRATORS, Heun, Stall, StepResult, ros2_g, vnorm
 from .krylov import gmres, shifted_space
 
 GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
@@ -69,7 +78,35 @@ STAGE_RTOL = 1e-6
 STAGE_MAX_IT = 30
 KRYLOV_MAX_IT = 150
 GROWTH_MAX = 0.2             # the largest h lambda of a growing mode a step may take
+# ... for another g (integrator.ros2_gamma): the z where |R(z) e^-z - 1| is what it is at
+# GROWTH_MAX for Verwer's g (2.4 %): growth_limit
 RATE_RELAX = 0.9             # the growth rate remembered, relaxed by this a measurement
+
+
+def stability(z, g: float = GAMMA):
+    """R(z) of ROS2 with the parameter g: (1 + (1 - 2g) z + (g^2 - 2g + 1/2) z^2) / (1 - g z)^2
+    (L-stable for g = 1 +- 1/sqrt(2), where the z^2 term vanishes)."""
+    z = np.asarray(z) * 1.0                  # real or complex
+    return (1.0 + (1.0 - 2.0 * g) * z + (g * g - 2.0 * g + 0.5) * z * z) / (1.0 - g * z) ** 2
+
+
+def growth_limit(g: float) -> float:
+    """The largest h lambda > 0 a step with parameter g may take: GROWTH_MAX for Verwer's g,
+    otherwise the z in (0, 1/g) where R(z) e^-z departs from 1 as much as Verwer's R does at
+    GROWTH_MAX (bisection; R e^-z - 1 is monotone there for both L-stable g)."""
+    if g == GAMMA:
+        return GROWTH_MAX
+    dev = abs(float(stability(GROWTH_MAX)) * math.exp(-GROWTH_MAX) - 1.0)
+    lo, hi = 0.0, 0.95 / g
+    if abs(float(stability(hi, g)) * math.exp(-hi) - 1.0) <= dev:
+        return hi
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        if abs(float(stability(mid, g)) * math.exp(-mid) - 1.0) <= dev:
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
 class ROS2(Heun):
@@ -77,6 +114,8 @@ class ROS2(Heun):
 
     def __init__(self, system, control, err_prev=None):
         super().__init__(system, control, err_prev)
+        self.g = ros2_g(control.ros2_gamma) or GAMMA
+        self.growth_max = growth_limit(self.g)
         self.rate_plus = 0.0         # the fastest growth rate measured (per unit strain)
         self.krylov_failed = 0
         self.rejections = dict(error=0, growth=0, solve=0, projection=0)   # by cause
@@ -103,7 +142,7 @@ class ROS2(Heun):
 
     def bound(self, F, dg: float) -> float:
         dg = super().bound(F, dg)
-        return min(dg, 0.9 * GROWTH_MAX / self.rate_plus) if self.rate_plus > 0 else dg
+        return min(dg, 0.9 * self.growth_max / self.rate_plus) if self.rate_plus > 0 else dg
 
     def _stage(self, W, rhs: np.ndarray, shape, space=None, keep_space=False, seed=None):
         """GMRES on W x = rhs (from the Krylov ``space`` of the same W, if given; ``seed``:
@@ -170,7 +209,7 @@ class ROS2(Heun):
                 sysm.load(w_n)
             if lin is None:
                 lin = sysm.linearised(F0)
-            W = lambda x, h=h: x - (GAMMA * h) * lin(x)          # noqa: E731
+            W = lambda x, h=h, g=self.g: x - (g * h) * lin(x)          # noqa: E731
             # stage 1 after a rejection: the same J and right-hand side, only h changed, and
             # a Krylov space of J does not depend on the shift -- the rejected trial's
             # Arnoldi relation, rescaled, is this W's (krylov.shifted_space): its products
@@ -182,12 +221,12 @@ class ROS2(Heun):
                 if k1 is None:
                     raise SingularOperator("ROS2 stage 1: GMRES did not converge")
                 # growth: mu = 1 - g h lambda < 1 (see the module)
-                hl = float(np.max((1.0 - ritz.real) / GAMMA, initial=0.0))
+                hl = float(np.max((1.0 - ritz.real) / self.g, initial=0.0))
                 self.rate_plus = max(hl / dg, RATE_RELAX * self.rate_plus)
-                if hl > GROWTH_MAX:
+                if hl > self.growth_max:
                     rejected += 1
                     self.rejections["growth"] += 1
-                    dg *= 0.9 * GROWTH_MAX / hl
+                    dg *= 0.9 * self.growth_max / hl
                     k1_space = (space, h)
                     continue
                 F1 = sysm.evaluate(s + h * k1, gamma + h, what="ROS2 stage", rtol=stage_rtol,
