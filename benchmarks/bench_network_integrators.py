@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 from petsc4py import PETSc  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from parflow.algebra.solvers import set_blas_threads  # noqa: E402
 from parflow.run import Run, setup_logging  # noqa: E402
 from parflow.scene import load_scene  # noqa: E402
 
@@ -189,15 +190,27 @@ def main():
     ap.add_argument("--json", default="network_integrators",
                     help="the results file under docs/benchmarks/ (another name: a run beside one "
                          "that writes the default, to be merged by hand)")
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="BLAS threads for CHOLMOD on one rank (2: both cores on one factor, "
+                         "as solver.parallel = \"threads\" does; a record of its own)")
     args = ap.parse_args()
     cases = args.cases.split(",")
     if not set(cases) <= set(CASES):
         raise SystemExit(f"--cases: a subset of {list(CASES)}")
     comm = PETSc.COMM_WORLD
     rank, size = comm.getRank(), comm.getSize()
+    threads = args.blas_threads
+    if threads != 1:
+        if size > 1:
+            raise SystemExit("--blas-threads: on one rank")
+        if set_blas_threads(threads) is None:
+            raise SystemExit("--blas-threads: this BLAS has no thread control")
     os.makedirs(args.folder, exist_ok=True)
     network = network_file(args.folder, args.n, comm)
     load_start = os.getloadavg()
+
+    def same(r):             # a record of this N, rank count and BLAS threads
+        return r["n"] == args.n and r["ranks"] == size and r.get("blas_threads", 1) == threads
     rows = []
     if rank == 0:        # the rows of earlier runs of this N and rank count (other cases) stay
         import json
@@ -206,7 +219,7 @@ def main():
         if os.path.exists(p):
             with open(p) as fh:
                 old = json.load(fh)
-        prev = [r for r in old.get("records", []) if r["n"] == args.n and r["ranks"] == size]
+        prev = [r for r in old.get("records", []) if same(r)]
         kept = [r for r in (prev[0]["rows"] if prev else []) if r["case"] not in cases]
     else:
         old, kept = {}, []
@@ -227,8 +240,8 @@ def main():
             r[f"dgamma_{name}"] = r["gamma_1e6"] - g
             r[f"dC_{name}"] = r["C"] / c - 1
     if rank == 0:
-        recs = [r for r in old.get("records", []) if not (r["n"] == args.n and r["ranks"] == size)]
-        recs.append(dict(n=args.n, ranks=size, date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        recs = [r for r in old.get("records", []) if not same(r)]
+        recs.append(dict(n=args.n, ranks=size, blas_threads=threads, date=time.strftime("%Y-%m-%d %H:%M:%S"),
                          load_start=load_start, load_end=os.getloadavg(),
                          peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                          c_window=C_WINDOW, rows=rows))

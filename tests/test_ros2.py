@@ -260,12 +260,13 @@ def test_reversed_steps_are_bounded_by_the_growing_modes(mpi_tmp_path, comm, mor
     comm.barrier()
 
 
-def test_ros2_restart_is_the_uninterrupted_run(mpi_tmp_path, comm):
-    whole, _ = _run(str(mpi_tmp_path / "whole.h5"), "ros2", 0.05, reverse=REVERSE)
+@pytest.mark.parametrize("more", ["", LOW_G])
+def test_ros2_restart_is_the_uninterrupted_run(mpi_tmp_path, comm, more):
+    whole, _ = _run(str(mpi_tmp_path / "whole.h5"), "ros2", 0.05, reverse=REVERSE, more=more)
     path = str(mpi_tmp_path / "part.h5")
-    _run(path, "ros2", 0.05, reverse=REVERSE, max_steps=120)
+    _run(path, "ros2", 0.05, reverse=REVERSE, max_steps=120 if not more else 40, more=more)
     comm.barrier()
-    scene = load_scene(CHAIN.format(method="ros2", tol=0.05, path=path, reverse=REVERSE, more=""))
+    scene = load_scene(CHAIN.format(method="ros2", tol=0.05, path=path, reverse=REVERSE, more=more))
     assert run_scene(scene, restart=True) == "complete"
     comm.barrier()
     with h5py.File(path, "r") as f:
