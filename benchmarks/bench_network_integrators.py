@@ -89,6 +89,9 @@ for _name in ("ros2_heun", "ros2_fast_heun", "ros2_fastd_heun"):
 # slow flow: (2g - 1) h^2 J F / 2)
 SPLIT_CASES["ros2_heun_lowg_tol01"] = ('method = "ros2"\ntol = 0.01\nros2_gamma = 0.2928932188134524',
                                        1e6, 'method = "heun"')
+SPLIT_CASES["ros2_fastm_heun_lowg"] = (
+    'method = "ros2"\ntol = 0.2\nmax_displacement = 0.1\nros2_gamma = 0.2928932188134524', 1e6,
+    'method = "heun"')
 SPLIT_CASES["ros2_fastd_heun_lowg_tol035"] = (
     'method = "ros2"\ntol = 0.035\nmax_displacement = 0.2\nros2_gamma = 0.2928932188134524', 1e6,
     'method = "heun", tol = 0.2, max_displacement = 0.2')
