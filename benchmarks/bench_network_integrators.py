@@ -81,20 +81,18 @@ for _name in ("ros2_heun", "ros2_fast_heun", "ros2_fastd_heun"):
     SPLIT_CASES[f"{_name}_recycle"] = (_scene + "\nkrylov_recycle = true", _split, _near)
 # the same with ROS2's other L-stable g = 1 - 1/sqrt(2) (integrator.ros2_gamma): the pole of
 # R(z) at z = 3.41 instead of 0.59, so a growing mode bounds the step ~4x later
+LOW_G = "\nros2_gamma = 0.2928932188134524"
 for _name in ("ros2_heun", "ros2_fast_heun", "ros2_fastd_heun"):
     _scene, _split, _near = SPLIT_CASES[_name]
-    SPLIT_CASES[f"{_name}_lowg"] = (_scene + "\nros2_gamma = 0.2928932188134524", _split, _near)
+    SPLIT_CASES[f"{_name}_lowg"] = (_scene + LOW_G, _split, _near)
 # ... at the tolerances that give the error of Verwer's g at 0.05 and 0.2 (the error estimate
 # of g = 1 - 1/sqrt(2), against its own linearly implicit Euler step, is 5.8x smaller for a
 # slow flow: (2g - 1) h^2 J F / 2)
-SPLIT_CASES["ros2_heun_lowg_tol01"] = ('method = "ros2"\ntol = 0.01\nros2_gamma = 0.2928932188134524',
-                                       1e6, 'method = "heun"')
-SPLIT_CASES["ros2_fastm_heun_lowg"] = (
-    'method = "ros2"\ntol = 0.2\nmax_displacement = 0.1\nros2_gamma = 0.2928932188134524', 1e6,
-    'method = "heun"')
-SPLIT_CASES["ros2_fastd_heun_lowg_tol035"] = (
-    'method = "ros2"\ntol = 0.035\nmax_displacement = 0.2\nros2_gamma = 0.2928932188134524', 1e6,
-    'method = "heun", tol = 0.2, max_displacement = 0.2')
+SPLIT_CASES["ros2_heun_lowg_tol01"] = ('method = "ros2"\ntol = 0.01' + LOW_G, 1e6, 'method = "heun"')
+SPLIT_CASES["ros2_fastm_heun_lowg"] = ('method = "ros2"\ntol = 0.2\nmax_displacement = 0.1' + LOW_G, 1e6,
+                                       'method = "heun"')
+SPLIT_CASES["ros2_fastd_heun_lowg_tol035"] = ('method = "ros2"\ntol = 0.035\nmax_displacement = 0.2' + LOW_G,
+                                              1e6, 'method = "heun", tol = 0.2, max_displacement = 0.2')
 for _name, (_scene, _split, _near) in SPLIT_CASES.items():
     CASES[_name] = f"{_scene}; to sigma = {_split:g}, then {_near}".replace("\n", "; ")
 # the reversed leg seeded: perturb = ETA a0 at the turn with perturb_seed k (the leg's keys),

@@ -694,14 +694,13 @@ def stiff_section(d):
                 "iterations a trial step, each a solve with the tridiagonal factor."]
     low = [r for r in d["runs"] if "ros2_gamma" in r]
     if ros2 and low:
+        def runs(rows):
+            return "; ".join(f"tol {r['tol']}: {r['steps']} steps, {r['rejected']} rejected, error "
+                             f"{r['forward_max_dlnV2']:.1e}, {r['krylov_iterations']} GMRES "
+                             f"iterations, {r['wall_seconds']} s" for r in rows)
         out += ["", "ROS2 with g = 1 − 1/√2 (`integrator.ros2_gamma`; its error estimate is 5.8× "
                 "smaller for a slow flow, so it runs at a ~5× smaller tol for the same error): " +
-                "; ".join(f"tol {r['tol']}: {r['steps']} steps, {r['rejected']} rejected, error "
-                          f"{r['forward_max_dlnV2']:.1e}, {r['krylov_iterations']} GMRES iterations, "
-                          f"{r['wall_seconds']} s" for r in low) + ", against Verwer's g " +
-                "; ".join(f"tol {r['tol']}: {r['steps']} steps, {r['rejected']} rejected, error "
-                          f"{r['forward_max_dlnV2']:.1e}, {r['krylov_iterations']} GMRES iterations, "
-                          f"{r['wall_seconds']} s" for r in ros2) + "."]
+                runs(low) + ", against Verwer's g " + runs(ros2) + "."]
     return out + [""]
 
 

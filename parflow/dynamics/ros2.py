@@ -66,6 +66,7 @@ import math
 import numpy as np
 
 from ..algebra.solvers import SingularOperator
+from ..state import InputError
 from .heun import INTEGRATORS, Heun, Stall, StepResult, ros2_g, vnorm
 from .krylov import gmres, shifted_space
 
@@ -114,7 +115,10 @@ class ROS2(Heun):
 
     def __init__(self, system, control, err_prev=None):
         super().__init__(system, control, err_prev)
-        self.g = ros2_g(control.ros2_gamma) or GAMMA
+        self.g = ros2_g(control.ros2_gamma)
+        if self.g is None:                # (a scene's value is checked on loading)
+            raise InputError(f"integrator.ros2_gamma = {control.ros2_gamma!r}: must be "
+                             f"1 + 1/sqrt(2) or 1 - 1/sqrt(2), the L-stable ROS2")
         self.growth_max = growth_limit(self.g)
         self.rate_plus = 0.0         # the fastest growth rate measured (per unit strain)
         self.krylov_failed = 0
