@@ -117,6 +117,35 @@ def test_restart_inside_a_leg_with_its_own_integrator(mpi_tmp_path, comm):
         np.testing.assert_array_equal(P[k], W[k])
 
 
+ROS2 = 'method = "ros2", tol = 0.3'
+CAUSES = ("error", "growth", "solve", "projection")
+
+
+def test_ros2_rejections_survive_a_switch_to_heun(mpi_tmp_path, comm):
+    """The run file's rejected_* (ros2's rejected trial steps by cause) count this sitting's
+    ros2 steps, also when the last leg runs Heun: all of them after the ROS2 -> Heun run, and
+    after a restart in the Heun leg none (not the earlier sitting's left standing)."""
+    whole, part = str(mpi_tmp_path / "whole.h5"), str(mpi_tmp_path / "part.h5")
+    assert run_scene(_scene(whole, HEUN, leg0=ROS2)) == "complete"
+    comm.barrier()
+    W = _series(whole)
+    fw = W["leg"] == 0
+    assert W["rejected"][fw].sum() > 0           # tol 0.3: ros2 rejects some forward steps
+    with h5py.File(whole, "r") as f:
+        got = {c: int(f.attrs[f"rejected_{c}"]) for c in CAUSES}
+    assert sum(got.values()) == W["rejected"][fw].sum()
+    n_fw = int(fw.sum())
+    run_scene(_scene(part, HEUN, leg0=ROS2), max_steps=n_fw + 3)
+    comm.barrier()
+    with h5py.File(part, "r") as f:
+        assert sum(int(f.attrs[f"rejected_{c}"]) for c in CAUSES) == W["rejected"][fw].sum()
+    assert run_scene(_scene(part, HEUN, leg0=ROS2), restart=True) == "complete"
+    comm.barrier()
+    with h5py.File(part, "r") as f:
+        assert all(int(f.attrs[f"rejected_{c}"]) == 0 for c in CAUSES)
+    np.testing.assert_array_equal(_series(part)["gamma"], W["gamma"])
+
+
 def _perturbed(path, rms):
     return load_scene(SCENE.format(path=path, scene=HEUN.replace(", ", "\n"), leg0="",
                                    leg1=f"perturb = {rms}" if rms is not None else ""))

@@ -41,6 +41,9 @@ class BondedEngine:
                               model.FACTOR_REUSE)
         self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
         self.control, self.integ = None, None
+        # ros2's rejected trial steps by cause, over the integrators this sitting has replaced
+        # (a leg that switches ROS2 -> Heun keeps its count)
+        self._rejections = dict(error=0, growth=0, solve=0, projection=0)
         self.use_integrator(None, ck)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
@@ -91,6 +94,8 @@ class BondedEngine:
         elif same:
             arrays, attrs = old.memory()
             integ.recall({**arrays, **attrs})
+        for k, v in getattr(old, "rejections", {}).items():
+            self._rejections[k] += int(v)
         self.control, self.integ = control, integ
         return True
 
@@ -190,9 +195,10 @@ class BondedEngine:
                     n_force_refreshed=sysm.n_refreshed, krylov_iterations=sysm.krylov_iterations,
                     n_identity_refined=sysm.n_identity_refined,
                     n_factor_rebuilt=getattr(sysm.tau_solver, "n_rebuilt", 0),
-                    # trial steps rejected, by cause, where the integrator counts them (ros2)
-                    **{f"rejected_{k}": int(v)
-                       for k, v in getattr(self.integ, "rejections", {}).items()})
+                    # ros2's trial steps rejected, by cause, this sitting (0 when it ran no ros2
+                    # step: a value from an earlier sitting is not left standing beside them)
+                    **{f"rejected_{k}": n + int(getattr(self.integ, "rejections", {}).get(k, 0))
+                       for k, n in self._rejections.items()})
 
     def destroy(self) -> None:
         if self._spec is not None:
