@@ -42,8 +42,12 @@ class BondedEngine:
         self.system = BondedSystem(comm, state, sol["preset"], sol["parallel"], reuse)
         self.control, self.integ = None, None
         # ros2's rejected trial steps by cause, over the integrators this sitting has replaced
-        # (a leg that switches ROS2 -> Heun keeps its count)
-        self._rejections = dict(error=0, growth=0, solve=0, projection=0)
+        # (a leg that switches ROS2 -> Heun keeps its count); counted for a scene that names
+        # ros2 anywhere (its [integrator] or a leg's), not at all otherwise
+        legs = scene["protocol"].get("leg", [])
+        uses_ros2 = "ros2" in {scene["integrator"].get("method")} | {
+            (leg.get("integrator") or {}).get("method") for leg in legs}
+        self._rejections = dict(error=0, growth=0, solve=0, projection=0) if uses_ros2 else {}
         self.use_integrator(None, ck)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None
@@ -95,7 +99,7 @@ class BondedEngine:
             arrays, attrs = old.memory()
             integ.recall({**arrays, **attrs})
         for k, v in getattr(old, "rejections", {}).items():
-            self._rejections[k] += int(v)
+            self._rejections[k] = self._rejections.get(k, 0) + int(v)
         self.control, self.integ = control, integ
         return True
 
@@ -197,8 +201,9 @@ class BondedEngine:
                     n_factor_rebuilt=getattr(sysm.tau_solver, "n_rebuilt", 0),
                     # ros2's trial steps rejected, by cause, this sitting (0 when it ran no ros2
                     # step: a value from an earlier sitting is not left standing beside them)
-                    **{f"rejected_{k}": n + int(getattr(self.integ, "rejections", {}).get(k, 0))
-                       for k, n in self._rejections.items()})
+                    **{f"rejected_{k}": self._rejections.get(k, 0) + int(v)
+                       for k, v in {**dict.fromkeys(self._rejections, 0),
+                                    **getattr(self.integ, "rejections", {})}.items()})
 
     def destroy(self) -> None:
         if self._spec is not None:
