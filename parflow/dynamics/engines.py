@@ -192,6 +192,7 @@ class BondedEngine:
 
     def counters(self) -> dict:
         sysm = self.system
+        now = getattr(self.integ, "rejections", {})
         return dict(n_factorisations=sysm.n_factor, n_reused_factor=sysm.n_reused,
                     n_reuse_failed=sysm.n_reuse_failed, n_stage_pcg=sysm.n_stage_pcg,
                     n_stage_failed=sysm.n_stage_failed, pcg_iterations=sysm.pcg_iterations,
@@ -201,9 +202,7 @@ class BondedEngine:
                     n_factor_rebuilt=getattr(sysm.tau_solver, "n_rebuilt", 0),
                     # ros2's trial steps rejected, by cause, this sitting (0 when it ran no ros2
                     # step: a value from an earlier sitting is not left standing beside them)
-                    **{f"rejected_{k}": self._rejections.get(k, 0) + int(v)
-                       for k, v in {**dict.fromkeys(self._rejections, 0),
-                                    **getattr(self.integ, "rejections", {})}.items()})
+                    **{f"rejected_{k}": n + int(now.get(k, 0)) for k, n in self._rejections.items()})
 
     def destroy(self) -> None:
         if self._spec is not None:
