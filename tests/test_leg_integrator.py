@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
+from parflow.dynamics.ros2 import REJECTION_CAUSES as CAUSES
 from parflow.scene import load_scene
 from parflow.state import InputError
 from systems import run_scene
@@ -118,7 +119,6 @@ def test_restart_inside_a_leg_with_its_own_integrator(mpi_tmp_path, comm):
 
 
 ROS2 = 'method = "ros2", tol = 0.3'
-CAUSES = ("error", "growth", "solve", "projection")
 
 
 def test_ros2_rejections_survive_a_switch_to_heun(mpi_tmp_path, comm):

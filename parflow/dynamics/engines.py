@@ -27,6 +27,7 @@ from ..state import InputError, Instant, State
 from .bonded import BondedSystem, resolve_reuse
 from .hard_discs import ShearJammed, Suspension
 from .heun import INTEGRATORS, Jammed, StepControl
+from .ros2 import REJECTION_CAUSES
 
 
 class BondedEngine:
@@ -47,7 +48,7 @@ class BondedEngine:
         legs = scene["protocol"].get("leg", [])
         uses_ros2 = "ros2" in {scene["integrator"].get("method")} | {
             (leg.get("integrator") or {}).get("method") for leg in legs}
-        self._rejections = dict(error=0, growth=0, solve=0, projection=0) if uses_ros2 else {}
+        self._rejections = dict.fromkeys(REJECTION_CAUSES, 0) if uses_ros2 else {}
         self.use_integrator(None, ck)
         self.n_eigs = scene["observables"]["n_eigs"]
         self._spec = None

@@ -71,6 +71,8 @@ from .heun import INTEGRATORS, Heun, Stall, StepResult, ros2_g, vnorm
 from .krylov import gmres, shifted_space
 
 GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
+# why a trial step is rejected (ROS2.rejections; the run file's rejected_* attributes)
+REJECTION_CAUSES = ("error", "growth", "solve", "projection")
 # The stage force by PCG on the step's factor when integrator.stage_rtol = 0: its error
 # enters the step as ~ h |dF| / 2, i.e. a relative 5e-7 of the step's displacement (the
 # step's own error is held at tol ~ 0.05), within STAGE_MAX_IT PCG iterations (6-13 at
@@ -122,7 +124,7 @@ class ROS2(Heun):
         self.growth_max = growth_limit(self.g)
         self.rate_plus = 0.0         # the fastest growth rate measured (per unit strain)
         self.krylov_failed = 0
-        self.rejections = dict(error=0, growth=0, solve=0, projection=0)   # by cause
+        self.rejections = dict.fromkeys(REJECTION_CAUSES, 0)
         self.w_n = None              # unit vectors of the factor this integrator loaded last
         self.w_at = None             # (s, gamma) of that factor, when not the step's own end
         self.pending = None          # such a (s, gamma) from a checkpoint, to load again
